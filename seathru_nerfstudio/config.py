@@ -1,0 +1,114 @@
+"""The registered methods: ``seathru-nerf`` (GPU, paper-faithful) and ``seathru-nerf-lite`` (CPU/laptop)."""
+
+from __future__ import annotations
+
+from nerfstudio.configs.base_config import ViewerConfig
+from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager, ParallelDataManagerConfig
+from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
+from nerfstudio.engine.optimizers import AdamOptimizerConfig
+from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
+from nerfstudio.engine.trainer import TrainerConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
+from nerfstudio.plugins.types import MethodSpecification
+
+from seathru_nerfstudio import compat
+from seathru_nerfstudio.data.linear_images import LinearImageDataset
+from seathru_nerfstudio.model import SeathruModelConfig
+
+compat.allow_nerfstudio_checkpoints()
+
+LOOPBACK = "127.0.0.1"
+"""Our viewer listens on loopback only; ``--viewer.websocket-host 0.0.0.0`` opts in to more."""
+
+
+def _optimizers(max_steps: int) -> dict:
+    adam = lambda: {  # noqa: E731
+        "optimizer": AdamOptimizerConfig(lr=1e-2, eps=1e-15),
+        "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=max_steps),
+    }
+    return {
+        "proposal_networks": adam(),
+        "fields": adam(),
+        "camera_opt": {
+            "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
+            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
+        },
+    }
+
+
+def _datamanager(rays: int) -> ParallelDataManagerConfig:
+    return ParallelDataManagerConfig(
+        _target=ParallelDataManager[LinearImageDataset],
+        dataparser=NerfstudioDataParserConfig(),
+        train_num_rays_per_batch=rays,
+        eval_num_rays_per_batch=rays,
+    )
+
+
+def seathru_nerf_config() -> TrainerConfig:
+    """Paper-faithful settings for a CUDA GPU: 16384 rays, the paper's 6x256 medium MLP."""
+    iterations = 50_000
+    return TrainerConfig(
+        method_name="seathru-nerf",
+        steps_per_eval_batch=500,
+        steps_per_save=2000,
+        max_num_iterations=iterations,
+        mixed_precision=True,
+        pipeline=VanillaPipelineConfig(
+            datamanager=_datamanager(16384),
+            model=SeathruModelConfig(
+                eval_num_rays_per_chunk=1 << 15,
+                average_init_density=0.01,
+                medium_num_layers=6,
+                medium_hidden_dim=256,
+            ),
+        ),
+        optimizers=_optimizers(200_000),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host=LOOPBACK),
+        vis="viewer",
+    )
+
+
+def seathru_nerf_lite_config() -> TrainerConfig:
+    """Sized for a CPU or laptop GPU: 1024 rays, 64/32 proposal and 32 NeRF samples,
+    a 2^15-entry 8-level hash grid, torch implementation, a 2x64 medium MLP."""
+    iterations = 1500
+    return TrainerConfig(
+        method_name="seathru-nerf-lite",
+        steps_per_eval_batch=100,
+        steps_per_eval_image=500,
+        steps_per_eval_all_images=100_000,
+        steps_per_save=500,
+        max_num_iterations=iterations,
+        mixed_precision=False,
+        pipeline=VanillaPipelineConfig(
+            datamanager=_datamanager(1024),
+            model=SeathruModelConfig(
+                eval_num_rays_per_chunk=1 << 13,
+                average_init_density=0.01,
+                implementation="torch",
+                num_proposal_samples_per_ray=(64, 32),
+                num_nerf_samples_per_ray=32,
+                log2_hashmap_size=15,
+                num_levels=8,
+                max_res=1024,
+                proposal_warmup=iterations // 3,
+                medium_num_layers=2,
+                medium_hidden_dim=64,
+            ),
+        ),
+        optimizers=_optimizers(iterations * 4),
+        viewer=ViewerConfig(num_rays_per_chunk=1 << 13, websocket_host=LOOPBACK),
+        vis="viewer",
+    )
+
+
+seathru_nerf = MethodSpecification(
+    config=seathru_nerf_config(),
+    description="SeaThru-NeRF (Levy et al. 2023): NeRF in scattering media; separates the scene from water or fog.",
+)
+
+seathru_nerf_lite = MethodSpecification(
+    config=seathru_nerf_lite_config(),
+    description="SeaThru-NeRF sized for a CPU or laptop GPU (1024 rays, small hash grid, torch implementation).",
+)

@@ -1,0 +1,195 @@
+"""SeaThru-NeRF as a nerfacto subclass: nerfacto's object field and proposal sampling,
+plus a per-ray medium field and the scattering renderer of :mod:`seathru_nerfstudio.rendering`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Dict, List, Literal, Tuple, Type
+from unittest import mock
+
+import torch
+from torch.nn import Parameter
+
+from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.field_components.field_heads import FieldHeadNames
+from nerfstudio.model_components.losses import scale_gradients_by_distance_squared
+from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
+from nerfstudio.utils import colormaps
+
+from seathru_nerfstudio import metrics
+from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
+from seathru_nerfstudio.medium_field import MediumField
+from seathru_nerfstudio.rendering import Quadrature, render_seathru
+
+IMAGE_OUTPUTS = ("rgb", "clean", "direct", "backscatter")
+"""Linear-radiance outputs (what the viewer's display transform applies to)."""
+MEDIUM_OUTPUTS = ("medium_rgb", "medium_attenuation", "medium_backscatter")
+"""Per-ray maps of ``c_med``, ``sigma_attn`` and ``sigma_bs`` (densities per scene unit)."""
+
+
+@dataclass
+class SeathruModelConfig(NerfactoModelConfig):
+    """SeaThru-NeRF: nerfacto's settings, plus the medium and the paper's losses."""
+
+    _target: Type = field(default_factory=lambda: SeathruModel)
+    medium_num_layers: int = 2
+    """Hidden layers of the medium MLP (the paper uses 6)."""
+    medium_hidden_dim: int = 64
+    """Width of the medium MLP (the paper uses 256)."""
+    medium_sh_levels: int = 4
+    """Spherical-harmonic levels of the medium's direction encoding."""
+    medium_init_density: float = 0.5
+    """Initial sigma_attn and sigma_bs, per scene unit."""
+    medium_model: Literal["final", "basic"] = "final"
+    """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
+    for both (eqs. 11-13), for the ablation."""
+    quadrature: Quadrature = "analytic"
+    """``analytic``: exact integral of each piecewise-constant interval (reduces exactly to
+    the SeaThru formation model). ``paper``: the sec. 4.3 sums as printed."""
+    color_space: Literal["linear", "srgb"] = "linear"
+    """``linear`` data trains with RawNeRF's relative L2; ``srgb`` data with plain L2."""
+    rawnerf_eps: float = 1e-3
+    """epsilon of the RawNeRF loss."""
+    binary_prior_mult: float = 1e-4
+    """Weight of the binary prior on the object transmittance (lambda in the paper)."""
+    binary_prior_scale: float = 0.1
+    """Scale of the two Laplacians of the binary prior."""
+    # Paper-faithful departures from nerfacto's defaults: no distortion loss, no per-image
+    # appearance code (it could explain the water away), no pose refinement.
+    distortion_loss_mult: float = 0.0
+    use_appearance_embedding: bool = False
+    background_color: Literal["random", "last_sample", "black", "white"] = "black"
+    camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
+
+
+class SeathruModel(NerfactoModel):
+    """nerfacto's object field rendered through a scattering medium (Levy et al. 2023)."""
+
+    config: SeathruModelConfig
+
+    def populate_modules(self) -> None:
+        # nerfacto builds LPIPS here, which downloads AlexNet: build it only if it is on disk.
+        with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", metrics.make_lpips):
+            super().populate_modules()
+        self.medium_field = MediumField(
+            num_layers=self.config.medium_num_layers,
+            hidden_dim=self.config.medium_hidden_dim,
+            sh_levels=self.config.medium_sh_levels,
+            init_density=self.config.medium_init_density,
+            implementation=self.config.implementation,
+        )
+
+    def get_param_groups(self) -> Dict[str, List[Parameter]]:
+        param_groups = super().get_param_groups()
+        param_groups["fields"] = param_groups["fields"] + list(self.medium_field.parameters())
+        return param_groups
+
+    def get_outputs(self, ray_bundle: RayBundle):
+        if self.training:
+            self.camera_optimizer.apply_to_raybundle(ray_bundle)
+        ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
+        field_outputs = self.field.forward(ray_samples)
+        if self.config.use_gradient_scaling:
+            field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
+        medium = self.medium_field(ray_bundle.directions)  # once per ray
+        sigma_attn = medium.sigma_bs if self.config.medium_model == "basic" else medium.sigma_attn
+        render = render_seathru(
+            object_rgb=field_outputs[FieldHeadNames.RGB],
+            object_density=field_outputs[FieldHeadNames.DENSITY],
+            starts=ray_samples.frustums.starts,
+            deltas=ray_samples.deltas,
+            medium_rgb=medium.rgb,
+            sigma_attn=sigma_attn,
+            sigma_bs=medium.sigma_bs,
+            quadrature=self.config.quadrature,
+        )
+        weights_list.append(render.weights)
+        ray_samples_list.append(ray_samples)
+        with torch.no_grad():
+            depth = self.renderer_depth(weights=render.weights, ray_samples=ray_samples)
+        outputs = {
+            "rgb": render.rgb,
+            "clean": render.clean,
+            "direct": render.direct,
+            "backscatter": render.backscatter,
+            "depth": depth,
+            "expected_depth": self.renderer_expected_depth(weights=render.weights, ray_samples=ray_samples),
+            "accumulation": render.accumulation,
+            "medium_rgb": medium.rgb,
+            "medium_attenuation": sigma_attn,
+            "medium_backscatter": medium.sigma_bs,
+        }
+        if self.training:
+            outputs["weights_list"] = weights_list
+            outputs["ray_samples_list"] = ray_samples_list
+            outputs["transmittance"] = render.transmittance
+        for i in range(self.config.num_proposal_iterations):
+            outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
+        return outputs
+
+    def get_loss_dict(self, outputs, batch, metrics_dict=None):
+        # nerfacto's terms (interlevel, distortion, camera), then the paper's colour loss.
+        loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
+        if self.config.color_space == "linear":
+            image = batch["image"][..., :3].to(self.device)
+            loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=self.config.rawnerf_eps)
+        if self.training and self.config.binary_prior_mult > 0:
+            loss_dict["binary_prior_loss"] = self.config.binary_prior_mult * binary_transmittance_loss(
+                outputs["transmittance"], scale=self.config.binary_prior_scale
+            )
+        return loss_dict
+
+    def get_image_metrics_and_images(
+        self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
+    ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        gt_rgb = self.renderer_rgb.blend_background(batch["image"].to(self.device))
+        predicted_rgb = outputs["rgb"].clamp(0.0, 1.0)
+        metrics_dict: Dict[str, float] = {
+            "psnr": metrics.psnr(predicted_rgb, gt_rgb),
+            "ssim": _ssim(predicted_rgb, gt_rgb),
+        }
+        if self.lpips is not None:
+            metrics_dict["lpips"] = float(self.lpips(_nchw(gt_rgb), _nchw(predicted_rgb)))
+
+        gt_depth = batch.get("gt_depth")
+        object_mask = None
+        if gt_depth is not None:
+            gt_depth = gt_depth.to(self.device)
+            object_mask = torch.isfinite(gt_depth)
+            metrics_dict["depth_abs_rel"] = metrics.depth_abs_rel(outputs["depth"], gt_depth)
+            metrics_dict["depth_abs_rel_far"] = metrics.depth_abs_rel(
+                outputs["depth"], gt_depth, metrics.far_third_mask(gt_depth)
+            )
+        if "gt_clean" in batch:
+            gt_clean = batch["gt_clean"].to(self.device)
+            clean = outputs["clean"].clamp(0.0, 1.0)
+            if object_mask is not None:  # open water has no clean colour: compare objects only
+                mask3 = object_mask.expand_as(clean)
+                metrics_dict["clean_psnr"] = metrics.psnr(clean[mask3], gt_clean[mask3])
+                clean_for_ssim = torch.where(mask3, clean, gt_clean)
+            else:
+                metrics_dict["clean_psnr"] = metrics.psnr(clean, gt_clean)
+                clean_for_ssim = clean
+            metrics_dict["clean_ssim"] = _ssim(clean_for_ssim, gt_clean)
+
+        depth = colormaps.apply_depth_colormap(outputs["depth"], accumulation=outputs["accumulation"])
+        images_dict = {
+            "img": torch.cat([gt_rgb, predicted_rgb], dim=1),
+            "clean": outputs["clean"].clamp(0.0, 1.0),
+            "backscatter": outputs["backscatter"].clamp(0.0, 1.0),
+            "depth": depth,
+            "accumulation": colormaps.apply_colormap(outputs["accumulation"]),
+        }
+        return metrics_dict, images_dict
+
+
+def _nchw(image: torch.Tensor) -> torch.Tensor:
+    return torch.moveaxis(image, -1, 0)[None, ...]
+
+
+def _ssim(pred: torch.Tensor, target: torch.Tensor) -> float:
+    from torchmetrics.functional import structural_similarity_index_measure
+
+    return float(structural_similarity_index_measure(_nchw(pred), _nchw(target), data_range=1.0))
