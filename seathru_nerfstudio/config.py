@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from nerfstudio.configs.base_config import ViewerConfig
+import torch
+
+from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager, ParallelDataManagerConfig
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
@@ -19,6 +21,15 @@ compat.allow_nerfstudio_checkpoints()
 
 LOOPBACK = "127.0.0.1"
 """Our viewer listens on loopback only; ``--viewer.websocket-host 0.0.0.0`` opts in to more."""
+
+
+def _machine() -> MachineConfig:
+    """CUDA when there is a GPU, else the CPU (nerfstudio's default would crash without one)."""
+    if torch.cuda.is_available():
+        return MachineConfig(device_type="cuda")
+    if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
+        return MachineConfig(device_type="mps")
+    return MachineConfig(device_type="cpu")
 
 
 def _optimizers(max_steps: int) -> dict:
@@ -54,6 +65,7 @@ def seathru_nerf_config() -> TrainerConfig:
         steps_per_save=2000,
         max_num_iterations=iterations,
         mixed_precision=True,
+        machine=_machine(),
         pipeline=VanillaPipelineConfig(
             datamanager=_datamanager(16384),
             model=SeathruModelConfig(
@@ -81,6 +93,7 @@ def seathru_nerf_lite_config() -> TrainerConfig:
         steps_per_save=500,
         max_num_iterations=iterations,
         mixed_precision=False,
+        machine=_machine(),
         pipeline=VanillaPipelineConfig(
             datamanager=_datamanager(1024),
             model=SeathruModelConfig(
