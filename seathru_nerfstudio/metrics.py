@@ -9,6 +9,9 @@ from typing import Callable, Optional
 import torch
 from jaxtyping import Float
 from torch import Tensor
+from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
+
+_LPIPS = LearnedPerceptualImagePatchSimilarity  # bound now: models patch the module attribute
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint that torchmetrics' LPIPS loads (from the torch hub cache)."""
@@ -28,9 +31,7 @@ def make_lpips(**kwargs) -> Optional[Callable]:
     global _warned
     path = lpips_weights_path()
     if path.is_file():
-        from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-        return LearnedPerceptualImagePatchSimilarity(**kwargs)
+        return _LPIPS(**kwargs)
     if not _warned:
         warnings.warn(
             f"LPIPS disabled: AlexNet weights not found at {path} and nothing will be downloaded. "

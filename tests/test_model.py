@@ -1,0 +1,234 @@
+"""SeathruModel glue: outputs contract, per-ray medium, losses, offline LPIPS, checkpoints."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import warnings
+
+import pytest
+import torch
+
+from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.data.scene_box import SceneBox
+
+from seathru_nerfstudio import metrics
+from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
+from seathru_nerfstudio.model import SeathruModel, SeathruModelConfig
+
+CONTRACT = (
+    "rgb",
+    "clean",
+    "direct",
+    "backscatter",
+    "depth",
+    "accumulation",
+    "medium_rgb",
+    "medium_attenuation",
+    "medium_backscatter",
+    "prop_depth_0",
+    "prop_depth_1",
+)
+
+
+def tiny_model(**overrides) -> SeathruModel:
+    config = SeathruModelConfig(
+        implementation="torch",
+        num_proposal_samples_per_ray=(16, 8),
+        num_nerf_samples_per_ray=8,
+        log2_hashmap_size=10,
+        num_levels=4,
+        max_res=64,
+        proposal_net_args_list=[
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 32, "use_linear": False},
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 64, "use_linear": False},
+        ],
+        **overrides,
+    )
+    return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)
+
+
+def rays(num: int, seed: int = 0) -> RayBundle:
+    gen = torch.Generator().manual_seed(seed)
+    directions = torch.nn.functional.normalize(torch.randn(num, 3, generator=gen), dim=-1)
+    return RayBundle(
+        origins=torch.randn(num, 3, generator=gen) * 0.1,
+        directions=directions,
+        pixel_area=torch.full((num, 1), 1e-4),
+        camera_indices=torch.zeros(num, 1, dtype=torch.long),
+    )
+
+
+@pytest.fixture(scope="module")
+def model() -> SeathruModel:
+    torch.manual_seed(0)
+    return tiny_model()
+
+
+def test_outputs_follow_the_contract_and_are_finite(model):
+    model.eval()
+    with torch.no_grad():
+        out = model(rays(64))
+    for name in CONTRACT:
+        assert name in out, name
+        assert out[name].shape[0] == 64
+        assert torch.isfinite(out[name]).all(), name
+    for name in ("rgb", "clean", "direct", "backscatter", "medium_rgb", "medium_attenuation"):
+        assert out[name].shape == (64, 3), name
+    torch.testing.assert_close(out["rgb"], out["direct"] + out["backscatter"])
+    assert (out["medium_attenuation"] > 0).all() and (out["medium_backscatter"] > 0).all()
+    assert ((out["medium_rgb"] > 0) & (out["medium_rgb"] < 1)).all()
+
+
+def test_medium_is_evaluated_once_per_ray(model):
+    model.train()
+    calls = []
+    original = model.medium_field.forward
+
+    def spy(directions):
+        calls.append(directions.shape)
+        return original(directions)
+
+    model.medium_field.forward = spy
+    try:
+        model(rays(32))
+    finally:
+        del model.medium_field.forward
+    assert calls == [torch.Size([32, 3])]
+
+
+def test_medium_is_constant_along_a_ray_and_depends_on_direction_only(model):
+    model.eval()
+    bundle = rays(16, seed=1)
+    shifted = rays(16, seed=1)
+    shifted.origins = shifted.origins + torch.tensor([0.3, -0.2, 0.1])
+    with torch.no_grad():
+        a, b = model(bundle), model(shifted)
+    for name in ("medium_rgb", "medium_attenuation", "medium_backscatter"):
+        torch.testing.assert_close(a[name], b[name])
+
+
+def test_basic_model_ties_attenuation_to_backscatter():
+    model = tiny_model(medium_model="basic")
+    model.eval()
+    with torch.no_grad():
+        out = model(rays(16))
+    torch.testing.assert_close(out["medium_attenuation"], out["medium_backscatter"])
+
+
+def test_loss_dict_has_the_paper_terms_and_finite_gradients(model):
+    model.train()
+    bundle = rays(48, seed=2)
+    out = model(bundle)
+    target = torch.rand(48, 3)
+    batch = {"image": target}
+    metrics_dict = model.get_metrics_dict(out, batch)
+    losses = model.get_loss_dict(out, batch, metrics_dict)
+    assert set(losses) >= {"rgb_loss", "interlevel_loss", "binary_prior_loss"}
+    torch.testing.assert_close(losses["rgb_loss"], rawnerf_loss(out["rgb"], target))
+    torch.testing.assert_close(
+        losses["binary_prior_loss"], 1e-4 * binary_transmittance_loss(out["transmittance"], scale=0.1)
+    )
+    total = sum(losses.values())
+    total.backward()
+    medium_grads = [p.grad for p in model.medium_field.parameters()]
+    assert all(g is not None and torch.isfinite(g).all() for g in medium_grads)
+    assert any(g.abs().sum() > 0 for g in medium_grads)
+    assert all(p in set(model.get_param_groups()["fields"]) for p in model.medium_field.parameters())
+    model.zero_grad()
+
+
+def test_srgb_data_trains_with_plain_l2():
+    model = tiny_model(color_space="srgb")
+    model.train()
+    out = model(rays(16))
+    target = torch.rand(16, 3)
+    losses = model.get_loss_dict(out, {"image": target}, model.get_metrics_dict(out, {"image": target}))
+    torch.testing.assert_close(losses["rgb_loss"], torch.mean((out["rgb"] - target) ** 2))
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16])
+def test_model_outputs_stay_finite_under_autocast(model, dtype):
+    model.train()
+    with torch.autocast(device_type="cpu", dtype=dtype):
+        out = model(rays(32, seed=3))
+        loss = rawnerf_loss(out["rgb"], torch.rand(32, 3))
+    for name in CONTRACT:
+        assert torch.isfinite(out[name].float()).all(), name
+    loss.backward()
+    assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
+    model.zero_grad()
+
+
+def test_lpips_is_skipped_offline_with_one_warning(tmp_path, monkeypatch):
+    monkeypatch.setattr(metrics, "_warned", False)
+    old = torch.hub.get_dir()
+    torch.hub.set_dir(str(tmp_path / "empty_hub"))
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            first = tiny_model()
+            second = tiny_model()
+    finally:
+        torch.hub.set_dir(old)
+    assert first.lpips is None and second.lpips is None
+    lpips_warnings = [w for w in caught if "LPIPS disabled" in str(w.message)]
+    assert len(lpips_warnings) == 1
+    outputs = {k: torch.rand(6, 8, 3) for k in ("rgb", "clean", "backscatter")}
+    outputs.update(depth=torch.rand(6, 8, 1), accumulation=torch.rand(6, 8, 1))
+    scores, _ = first.get_image_metrics_and_images(outputs, {"image": torch.rand(6, 8, 3)})
+    assert "lpips" not in scores and "psnr" in scores
+
+
+def test_lpips_is_used_when_its_weights_are_on_disk(tmp_path):
+    import torchvision
+
+    hub = tmp_path / "hub"
+    (hub / "checkpoints").mkdir(parents=True)
+    torch.save(torchvision.models.alexnet(weights=None).state_dict(), hub / "checkpoints" / metrics.ALEXNET_WEIGHTS)
+    old = torch.hub.get_dir()
+    torch.hub.set_dir(str(hub))
+    try:
+        model = tiny_model()
+    finally:
+        torch.hub.set_dir(old)
+    assert model.lpips is not None
+    outputs = {k: torch.rand(32, 32, 3) for k in ("rgb", "clean", "backscatter")}
+    outputs.update(depth=torch.rand(32, 32, 1), accumulation=torch.rand(32, 32, 1))
+    scores, _ = model.get_image_metrics_and_images(outputs, {"image": torch.rand(32, 32, 3)})
+    assert "lpips" in scores and scores["lpips"] == scores["lpips"]
+
+
+def test_eval_metrics_against_ground_truth():
+    model = tiny_model()
+    height, width = 8, 10
+    clean = torch.rand(height, width, 3)
+    depth = torch.full((height, width, 1), 2.0)
+    depth[:2] = float("inf")  # open water rows
+    outputs = {
+        "rgb": clean.clone(),
+        "clean": clean.clone(),
+        "backscatter": torch.zeros(height, width, 3),
+        "depth": depth.clone().nan_to_num(posinf=50.0) * 1.5,
+        "accumulation": torch.ones(height, width, 1),
+    }
+    outputs["clean"][:2] = 0.7  # open water: ignored by clean metrics
+    batch = {"image": clean.clone(), "gt_clean": clean.clone(), "gt_depth": depth}
+    scores, images = model.get_image_metrics_and_images(outputs, batch)
+    assert scores["clean_psnr"] > 100
+    assert scores["depth_abs_rel"] == pytest.approx(0.5)
+    assert scores["depth_abs_rel_far"] == pytest.approx(0.5)
+    assert {"img", "clean", "backscatter", "depth"} <= set(images)
+
+
+def test_nerfstudio_checkpoints_load_with_weights_only(tmp_path):
+    """torch >= 2.6 refuses nerfstudio checkpoints (NumPy scalars) unless our package is imported."""
+    import numpy as np
+
+    path = tmp_path / "step-000000001.ckpt"
+    torch.save({"step": 1, "schedulers": {"fields": {"_last_lr": [np.float64(0.01)], "base": np.int64(3)}}}, path)
+    load = f"import torch; torch.load({str(path)!r}, map_location='cpu')"
+    plain = subprocess.run([sys.executable, "-c", load], capture_output=True, text=True)
+    assert plain.returncode != 0 and "weights_only" in plain.stderr.lower() + plain.stdout.lower()
+    fixed = subprocess.run([sys.executable, "-c", "import seathru_nerfstudio.config; " + load], capture_output=True, text=True)
+    assert fixed.returncode == 0, fixed.stderr[-2000:]
