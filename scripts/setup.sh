@@ -1,0 +1,27 @@
+#!/usr/bin/env bash
+# Set up a fresh machine for seathru-nerfstudio: ffmpeg (ns-render needs it), Chromium (the
+# viewer's browser test), a virtualenv in .venv (or $VENV) and this package with its test extras.
+# Safe to run again: it only installs what is missing.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+VENV=${VENV:-.venv}
+PYTHON=${PYTHON:-python3}
+
+apt_packages=()
+command -v ffmpeg >/dev/null || apt_packages+=(ffmpeg)
+command -v chromium >/dev/null || apt_packages+=(chromium)
+if [ ${#apt_packages[@]} -gt 0 ]; then
+  if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+    echo "setup: apt-get install ${apt_packages[*]}"
+    apt-get update -qq
+    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${apt_packages[@]}" >/dev/null
+  else
+    echo "setup: warning: please install ${apt_packages[*]} (e.g. sudo apt-get install ${apt_packages[*]})" >&2
+  fi
+fi
+
+[ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
+"$VENV/bin/python" -m pip install -q --upgrade pip
+# torch 2.14.1 / torchvision 0.29.1 are the pair tested here (CPU, and CUDA wheels on PyPI).
+"$VENV/bin/python" -m pip install -q torch==2.14.1 torchvision==0.29.1 -e ".[test]"
+echo "setup: done ($VENV)"
