@@ -1,0 +1,244 @@
+"""``seathru-process-data``: RAW or 16-bit captures -> a linear SeaThru-NeRF dataset.
+
+Usage::
+
+    seathru-process-data --data <folder of RAW/16-bit files> --output-dir <dataset>
+
+Steps: decode to linear camera RGB (rawpy), optional area downscale, one white balance for
+the whole set (the paper's 0.5% per-channel clipping), 16-bit linear PNGs in
+``<out>/images/``, then poses with pycolmap on display-transformed copies, written as
+``<out>/sparse/0``, ``<out>/transforms.json`` (load with ``nerfstudio-data``) and
+``<out>/poses_bounds.npy`` (load with ``seathru-data``). ``<out>/white_balance.json``
+records the clip points and gains.
+
+Everything is built in a hidden sibling folder and renamed into place at the end, so an
+interrupted or failed run leaves no half-written dataset; the input folder is only read.
+"""
+
+from __future__ import annotations
+
+import shutil
+import sys
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Literal, Optional
+
+import numpy as np
+import tyro
+
+from nerfstudio.utils.rich_utils import CONSOLE, get_progress
+from seathru_nerfstudio.data.raw import (
+    LINEAR_EXTENSIONS,
+    RAW_EXTENSIONS,
+    ChannelHistogram,
+    RawDecodeError,
+    WhiteBalance,
+    WhiteBalanceMethod,
+    downscale_to_long_side,
+    estimate_white_balance,
+    image_sizes_summary,
+    is_raw,
+    read_input_image,
+    to_uint16,
+    write_linear_png,
+)
+from seathru_nerfstudio.data.sfm import MatchingMethod, SfmError, SfmResult, report, run_sfm, write_display_copy, write_outputs
+
+
+class ProcessDataError(RuntimeError):
+    """The input cannot be turned into a dataset; the message says why and what to do."""
+
+
+@dataclass
+class ProcessSeathruData:
+    """Turn a folder of RAW (NEF, DNG, CR2, ARW, RAF, ORF, RW2, ...) or 16-bit linear TIFF/PNG
+    captures into a linear SeaThru-NeRF dataset with poses."""
+
+    data: Path
+    """Folder holding the captures (not searched recursively). Never modified."""
+    output_dir: Path
+    """Dataset folder to create: images/, sparse/0, transforms.json, poses_bounds.npy."""
+    white_balance: WhiteBalanceMethod = "percentile"
+    """percentile (the paper's): clip each channel at its clip-percent / 100-clip-percent points, map the upper one to 1. grey-world: same clipping, equal channel means. camera: the camera's as-shot multipliers (RAW only), same clipping. none: sensor values as decoded. One set of gains for all images."""
+    clip_percent: float = 0.5
+    """Per-channel clipping percentile for white balance (the paper uses 0.5)."""
+    max_long_side: Optional[int] = None
+    """Downscale (area average, linear-preserving) so the long side is at most this many px."""
+    camera_model: Literal["OPENCV", "SIMPLE_RADIAL", "RADIAL", "PINHOLE", "SIMPLE_PINHOLE"] = "OPENCV"
+    """COLMAP camera model shared by all images (OPENCV, as in the published SeaThru-NeRF data)."""
+    matching_method: MatchingMethod = "auto"
+    """auto: exhaustive up to 50 images, sequential (video-like captures) beyond."""
+    skip_sfm: bool = False
+    """Only decode and white-balance; write no poses."""
+    overwrite: bool = False
+    """Replace an output folder that already holds files."""
+    verbose: bool = False
+    """Show COLMAP's own log."""
+
+    def main(self) -> "ProcessReport":
+        return process(self)
+
+
+@dataclass
+class ProcessReport:
+    """What a run produced (file names are the output ``images/`` names)."""
+
+    output_dir: Path
+    images: list[str]
+    skipped: dict[str, str] = field(default_factory=dict)
+    """Input files that could not be read, with the reason."""
+    white_balance: WhiteBalance = field(default_factory=WhiteBalance.identity)
+    sfm: Optional[SfmResult] = None
+
+
+def find_captures(data: Path) -> list[Path]:
+    """The RAW or linear image files directly in ``data``, sorted by name."""
+    if not data.is_dir():
+        raise ProcessDataError(f"--data {data} is not a folder")
+    files = sorted(p for p in data.iterdir() if p.is_file() and not p.name.startswith("."))
+    raws = [p for p in files if is_raw(p)]
+    linears = [p for p in files if p.suffix.lower() in LINEAR_EXTENSIONS]
+    if not raws and not linears:
+        raise ProcessDataError(
+            f"{data} holds no RAW ({', '.join(sorted(RAW_EXTENSIONS))}) or 16-bit TIFF/PNG files"
+        )
+    if raws and linears:
+        raise ProcessDataError(
+            f"{data} mixes RAW files ({raws[0].name}, ...) with TIFF/PNG ({linears[0].name}, ...): their "
+            "colour spaces differ; process them separately"
+        )
+    captures = raws or linears
+    stems: dict[str, Path] = {}
+    for path in captures:
+        if path.stem in stems:
+            raise ProcessDataError(f"{path.name} and {stems[path.stem].name} would both become {path.stem}.png")
+        stems[path.stem] = path
+    return captures
+
+
+def _check_output(output_dir: Path, data: Path, overwrite: bool) -> None:
+    out, src = output_dir.resolve(), data.resolve()
+    if out == src or out in src.parents:
+        raise ProcessDataError(f"--output-dir {output_dir} would contain the input folder {data}; pick another folder")
+    if output_dir.exists() and not output_dir.is_dir():
+        raise ProcessDataError(f"--output-dir {output_dir} exists and is not a folder")
+    if output_dir.is_dir() and any(output_dir.iterdir()) and not overwrite:
+        raise ProcessDataError(
+            f"{output_dir} already holds files (a previous run?). Pass --overwrite to replace it, "
+            "or choose another --output-dir"
+        )
+
+
+def _publish(build_dir: Path, output_dir: Path) -> None:
+    """Move the finished ``build_dir`` to ``output_dir``, replacing what was there."""
+    old = None
+    if output_dir.exists():
+        old = output_dir.with_name(f".{output_dir.name}.old-{build_dir.name.rsplit('-', 1)[-1]}")
+        output_dir.rename(old)
+    build_dir.rename(output_dir)
+    if old is not None:
+        shutil.rmtree(old)
+
+
+def process(config: ProcessSeathruData) -> ProcessReport:
+    """Run the whole pipeline; raises :class:`ProcessDataError` / ``SfmError`` with nothing
+    written when it cannot produce a dataset."""
+    if not 0.0 <= config.clip_percent < 50.0:
+        raise ProcessDataError(f"--clip-percent must be in [0, 50), got {config.clip_percent}")
+    if config.max_long_side is not None and config.max_long_side < 16:
+        raise ProcessDataError(f"--max-long-side must be at least 16 px, got {config.max_long_side}")
+    captures = find_captures(config.data)
+    _check_output(config.output_dir, config.data, config.overwrite)
+    if config.white_balance == "camera" and not is_raw(captures[0]):
+        raise ProcessDataError("--white-balance camera needs RAW files (TIFF/PNG carry no as-shot multipliers)")
+    config.output_dir.parent.mkdir(parents=True, exist_ok=True)
+    build = Path(tempfile.mkdtemp(prefix=f".{config.output_dir.name}.partial-", dir=config.output_dir.parent))
+    try:
+        report_ = _build(config, captures, build)
+        shutil.rmtree(build / "_work")
+        _publish(build, config.output_dir)
+    except BaseException:
+        shutil.rmtree(build, ignore_errors=True)
+        raise
+    CONSOLE.print(f"[bold green]Done: {len(report_.images)} linear 16-bit images in {config.output_dir / 'images'}")
+    return report_
+
+
+def _build(config: ProcessSeathruData, captures: list[Path], build: Path) -> ProcessReport:
+    from seathru_nerfstudio.data.linear_images import ImageReadError
+
+    work = build / "_work"
+    decoded_dir, display_dir = work / "decoded", work / "display"
+    decoded_dir.mkdir(parents=True)
+    histogram = ChannelHistogram()
+    sizes: dict[str, tuple[int, int]] = {}
+    skipped: dict[str, str] = {}
+
+    # Pass 1: decode, downscale, accumulate the joint histogram. The decoded frames wait in
+    # the scratch folder as uint16 (exact for RAW, which LibRaw outputs at 16 bits).
+    progress = get_progress("[bold yellow]Decoding to linear RGB", suffix="images/s")
+    with progress:
+        for path in progress.track(captures):
+            try:
+                image = read_input_image(path, use_camera_wb=config.white_balance == "camera")
+            except (RawDecodeError, ImageReadError) as error:
+                skipped[path.name] = str(error)
+                progress.console.print(f"[bold yellow]Warning: skipping {path.name}: {error}")
+                continue
+            image = downscale_to_long_side(image, config.max_long_side)
+            sizes[path.name] = image.shape[:2]
+            histogram.add(image)
+            np.save(decoded_dir / f"{path.stem}.npy", to_uint16(image))
+    if not sizes:
+        raise ProcessDataError(f"none of the {len(captures)} files in {config.data} could be read: {skipped}")
+    if len(set(sizes.values())) > 1:
+        raise ProcessDataError(
+            "the images do not all have the same size, but SeaThru-NeRF assumes one camera. Sizes: "
+            + image_sizes_summary(sizes)
+        )
+
+    white_balance = estimate_white_balance(histogram, config.white_balance, config.clip_percent)
+    CONSOLE.print(
+        f"White balance ({white_balance.method}): gains R,G,B = {', '.join(f'{g:.3f}' for g in white_balance.gains)}"
+    )
+
+    # Pass 2: the same white balance for every view, 16-bit linear PNGs + SIFT copies.
+    names = []
+    progress = get_progress("[bold yellow]White balance + writing 16-bit PNGs", suffix="images/s")
+    with progress:
+        for source in progress.track([p for p in captures if p.name in sizes]):
+            image = np.load(decoded_dir / f"{source.stem}.npy").astype(np.float32) / 65535.0
+            image = white_balance.apply(image)
+            name = f"{source.stem}.png"
+            write_linear_png(build / "images" / name, image)
+            if not config.skip_sfm:
+                write_display_copy(display_dir / name, image)
+            names.append(name)
+    white_balance.save(build / "white_balance.json")
+    result = None
+    if not config.skip_sfm:
+        result = run_sfm(
+            display_dir, work / "sfm", camera_model=config.camera_model, matching=config.matching_method, verbose=config.verbose
+        )
+        report(result)
+        write_outputs(result, build)
+    if skipped:
+        CONSOLE.print(f"[bold yellow]Warning: {len(skipped)} unreadable file(s) left out: {', '.join(skipped)}")
+    return ProcessReport(
+        output_dir=config.output_dir, images=names, skipped=skipped, white_balance=white_balance, sfm=result
+    )
+
+
+def entrypoint() -> None:
+    """Console script: exit status 1 with a one-line reason on bad input."""
+    config = tyro.cli(ProcessSeathruData)
+    try:
+        config.main()
+    except (ProcessDataError, SfmError) as error:
+        CONSOLE.print(f"[bold red]Error: {error}")
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    entrypoint()
