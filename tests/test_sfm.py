@@ -1,0 +1,129 @@
+"""Poses: seathru-process-data's pycolmap path on a rendered underwater scene, checked
+against the generator's ground-truth cameras after a similarity (Umeyama) alignment."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import cv2  # before pycolmap (see seathru_nerfstudio/data/sfm.py)
+import numpy as np
+import pytest
+
+from seathru_nerfstudio.data.process import ProcessReport, ProcessSeathruData, process
+from seathru_nerfstudio.data.raw import write_linear_png
+from seathru_nerfstudio.data.sfm import display_transform
+from seathru_nerfstudio.data.synthetic import SynthConfig, generate
+
+NUM_VIEWS = 16
+DISTRACTORS = ["zz_unrelated_0.png", "zz_unrelated_1.png"]
+
+
+def umeyama(source: np.ndarray, target: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising ||s R source + t - target||² (Umeyama 1991)."""
+    mu_s, mu_t = source.mean(0), target.mean(0)
+    xs, xt = source - mu_s, target - mu_t
+    u, d, vt = np.linalg.svd(xt.T @ xs / len(source))
+    sign = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        sign[2, 2] = -1
+    rotation = u @ sign @ vt
+    scale = np.trace(np.diag(d) @ sign) / (xs**2).sum(1).mean()
+    return scale, rotation, mu_t - scale * rotation @ mu_s
+
+
+def c2w_by_name(transforms: Path) -> dict[str, np.ndarray]:
+    frames = json.loads(transforms.read_text())["frames"]
+    return {Path(f["file_path"]).name: np.asarray(f["transform_matrix"], dtype=np.float64) for f in frames}
+
+
+@pytest.fixture(scope="module")
+def sfm_run(tmp_path_factory) -> tuple[Path, Path, ProcessReport, dict[str, str]]:
+    """Render a water scene (16 views, 320×240), add two unrelated frames that cannot
+    register, run the full pipeline once for every test in this module."""
+    root = tmp_path_factory.mktemp("sfm")
+    scene = generate(SynthConfig(output_dir=root / "scene", preset="water", seed=0, width=320, height=240, num_views=NUM_VIEWS))
+    rng = np.random.default_rng(0)
+    for name in DISTRACTORS:  # a blurred-noise texture seen nowhere else
+        noise = cv2.GaussianBlur(rng.uniform(0, 0.4, (240, 320, 3)).astype(np.float32), (0, 0), 2.0)
+        write_linear_png(scene / "images" / name, noise)
+    inputs = scene / "images"
+    before = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in inputs.iterdir()}
+    report = process(ProcessSeathruData(data=inputs, output_dir=root / "dataset"))
+    return scene, root / "dataset", report, before
+
+
+def test_display_transform_lifts_dark_linear_frames() -> None:
+    dark = np.linspace(0.0, 0.05, 256, dtype=np.float32).reshape(16, 16, 1).repeat(3, axis=2)
+    shown = display_transform(dark)
+    assert shown.dtype == np.uint8 and shown.max() == 255
+    assert np.all(np.diff(shown[..., 0].ravel().astype(int)) >= 0)  # monotonic
+    assert shown[8, 0, 0] > 255 * 0.5**0.5  # gamma 1/2.2 brightens the mid-tones
+
+
+def test_poses_register_and_match_ground_truth(sfm_run) -> None:
+    scene, dataset, report, _ = sfm_run
+    truth = c2w_by_name(scene / "transforms.json")
+    estimate = c2w_by_name(dataset / "transforms.json")
+    scene_frames = sorted(truth)
+    registered = [n for n in scene_frames if n in estimate]
+    rate = len(registered) / len(scene_frames)
+
+    source = np.array([estimate[n][:3, 3] for n in registered])
+    target = np.array([truth[n][:3, 3] for n in registered])
+    scale, rotation, translation = umeyama(source, target)
+    aligned = (scale * (rotation @ source.T)).T + translation
+    errors = np.linalg.norm(aligned - target, axis=1)
+    extent = float(np.linalg.norm(target.max(0) - target.min(0)))  # diagonal of the camera rig
+    angles = [
+        np.degrees(np.arccos(np.clip((np.trace(rotation @ estimate[n][:3, :3] @ truth[n][:3, :3].T) - 1) / 2, -1, 1)))
+        for n in registered
+    ]
+    print(
+        f"\nSfM on the water scene: registered {len(registered)}/{len(scene_frames)} ({100 * rate:.0f}%); "
+        f"camera-centre error after Umeyama: max {errors.max() * 1000:.2f} mm, mean {errors.mean() * 1000:.2f} mm "
+        f"= {100 * errors.max() / extent:.2f}% of the {extent:.3f} m rig extent; rotation error max {max(angles):.2f} deg"
+    )
+    assert rate >= 0.9
+    assert errors.max() < 0.02 * extent
+    assert max(angles) < 2.0
+
+
+def test_unregistered_frames_are_reported_and_left_out(sfm_run) -> None:
+    scene, dataset, report, _ = sfm_run
+    assert report.sfm is not None
+    assert set(DISTRACTORS) <= set(report.sfm.unregistered)
+    assert not set(DISTRACTORS) & set(c2w_by_name(dataset / "transforms.json"))
+    assert len(c2w_by_name(dataset / "transforms.json")) == len(report.sfm.registered)
+    # the decoded images are still all written (only the poses are missing)
+    assert sorted(p.name for p in (dataset / "images").iterdir()) == sorted(report.images)
+
+
+def test_output_layout_and_inputs_untouched(sfm_run) -> None:
+    scene, dataset, report, before = sfm_run
+    inputs = scene / "images"
+    assert {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in inputs.iterdir()} == before
+    assert sorted(p.name for p in dataset.iterdir()) == [
+        "images", "poses_bounds.npy", "sparse", "sparse_pc.ply", "transforms.json", "white_balance.json",
+    ]  # fmt: skip
+    assert {"cameras.bin", "images.bin", "points3D.bin"} <= {p.name for p in (dataset / "sparse" / "0").iterdir()}
+    poses_bounds = np.load(dataset / "poses_bounds.npy")
+    assert poses_bounds.shape == (len(report.sfm.registered), 17)
+    near, far = poses_bounds[:, 15], poses_bounds[:, 16]
+    assert np.all(near > 0) and np.all(far > near)
+    assert not list(dataset.parent.glob(".dataset.*"))  # no build folder left behind
+    png = cv2.imread(str(dataset / "images" / report.images[0]), cv2.IMREAD_UNCHANGED)
+    assert png.dtype == np.uint16
+
+
+def test_process_output_loads_with_seathru_data(sfm_run) -> None:
+    """The process output is a valid seathru-data dataset (images/ fallback, near/far)."""
+    from seathru_nerfstudio.data.seathru_dataparser import SeathruDataParserConfig
+
+    _, dataset, report, _ = sfm_run
+    outputs = SeathruDataParserConfig(data=dataset).setup().get_dataparser_outputs("train")
+    names = sorted(report.sfm.registered)
+    assert [p.name for p in outputs.image_filenames] == [n for i, n in enumerate(names) if i % 8 != 0]
+    assert outputs.metadata["near_far"].shape == (len(outputs.image_filenames), 2)
+    assert 0 < outputs.metadata["near_plane"] < outputs.metadata["far_plane"]
