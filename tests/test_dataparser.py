@@ -175,6 +175,9 @@ def test_missing_layout_is_a_clear_error(tmp_path: Path) -> None:
     (tmp_path / "scene" / "sparse" / "0").mkdir(parents=True)
     with pytest.raises(SeathruDataError, match="no image folder"):
         parse(tmp_path / "scene")
+    root = make_dataset(tmp_path / "full")
+    with pytest.raises(SeathruDataError, match="looked for typo/$"):  # a folder the user named must exist
+        parse(root, images_path=Path("typo"))
 
 
 def test_registered_as_nerfstudio_dataparser() -> None:

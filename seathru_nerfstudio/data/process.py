@@ -109,6 +109,9 @@ def find_captures(data: Path) -> list[Path]:
             "colour spaces differ; process them separately"
         )
     captures = raws or linears
+    ignored = [p.name for p in files if p not in captures]
+    if ignored:  # e.g. the JPEGs of a RAW+JPEG capture
+        CONSOLE.print(f"Ignoring {len(ignored)} other file(s) in {data}: {', '.join(ignored[:5])}{' ...' * (len(ignored) > 5)}")
     stems: dict[str, Path] = {}
     for path in captures:
         if path.stem in stems:

@@ -74,11 +74,13 @@ class SeathruDataParser(ColmapDataParser):
         if not data.is_dir():
             raise SeathruDataError(f"dataset folder {data} does not exist")
         if not (data / self.config.images_path).is_dir():
-            found = next((p for p in IMAGE_FOLDER_CANDIDATES if (data / p).is_dir()), None)
+            # only the default name falls back; a folder the user named must exist
+            candidates = IMAGE_FOLDER_CANDIDATES if self.config.images_path == IMAGE_FOLDER_CANDIDATES[0] else ()
+            found = next((p for p in candidates if (data / p).is_dir()), None)
             if found is None:
                 raise SeathruDataError(
-                    f"{data} has no image folder: looked for {self.config.images_path}/ and "
-                    f"{', '.join(f'{p}/' for p in IMAGE_FOLDER_CANDIDATES)}"
+                    f"{data} has no image folder: looked for "
+                    f"{', '.join(f'{p}/' for p in dict.fromkeys([self.config.images_path, *candidates]))}"
                 )
             self.config.images_path = found
         if not (data / self.config.colmap_path).is_dir():
