@@ -18,7 +18,7 @@ from nerfstudio.model_components.losses import scale_gradients_by_distance_squar
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils import colormaps
 
-from seathru_nerfstudio import metrics
+from seathru_nerfstudio import metrics, viewer
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.medium_field import MediumField
 from seathru_nerfstudio.rendering import Quadrature, render_seathru
@@ -80,6 +80,8 @@ class SeathruModel(NerfactoModel):
             init_density=self.config.medium_init_density,
             implementation=self.config.implementation,
         )
+        # Viewer controls and display transform (no parameters; never applied in training).
+        self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         param_groups = super().get_param_groups()
@@ -94,6 +96,7 @@ class SeathruModel(NerfactoModel):
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         medium = self.medium_field(ray_bundle.directions)  # once per ray
+        medium = viewer.override_medium(self, medium)  # identity unless a viewer/ns-render render
         sigma_attn = medium.sigma_bs if self.config.medium_model == "basic" else medium.sigma_attn
         render = render_seathru(
             object_rgb=field_outputs[FieldHeadNames.RGB],
@@ -129,6 +132,10 @@ class SeathruModel(NerfactoModel):
             outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
         return outputs
 
+    def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
+        # Whole-image renders outside training and evaluation are for display (viewer, ns-render).
+        return viewer.render_camera(self, camera_ray_bundle, super().get_outputs_for_camera_ray_bundle)
+
     def get_loss_dict(self, outputs, batch, metrics_dict=None):
         # nerfacto's terms (interlevel, distortion, camera), then the paper's colour loss.
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
@@ -144,6 +151,7 @@ class SeathruModel(NerfactoModel):
     def get_image_metrics_and_images(
         self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
+        outputs = viewer.linear_view(outputs)  # metrics never see display values
         gt_rgb = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         predicted_rgb = outputs["rgb"].clamp(0.0, 1.0)
         metrics_dict: Dict[str, float] = {
