@@ -10,12 +10,12 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataPars
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
-from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from seathru_nerfstudio import compat
 from seathru_nerfstudio.data.linear_images import LinearImageDataset
 from seathru_nerfstudio.model import SeathruModelConfig
+from seathru_nerfstudio.pipeline import SeathruPipelineConfig  # evaluates on linear outputs
 
 compat.allow_nerfstudio_checkpoints()
 
@@ -66,7 +66,7 @@ def seathru_nerf_config() -> TrainerConfig:
         max_num_iterations=iterations,
         mixed_precision=True,
         machine=_machine(),
-        pipeline=VanillaPipelineConfig(
+        pipeline=SeathruPipelineConfig(
             datamanager=_datamanager(16384),
             model=SeathruModelConfig(
                 eval_num_rays_per_chunk=1 << 15,
@@ -94,7 +94,7 @@ def seathru_nerf_lite_config() -> TrainerConfig:
         max_num_iterations=iterations,
         mixed_precision=False,
         machine=_machine(),
-        pipeline=VanillaPipelineConfig(
+        pipeline=SeathruPipelineConfig(
             datamanager=_datamanager(1024),
             model=SeathruModelConfig(
                 eval_num_rays_per_chunk=1 << 13,
