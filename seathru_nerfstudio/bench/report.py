@@ -1,0 +1,166 @@
+"""Markdown table and plots of a ``results.json`` (``seathru-bench run`` / ``report``)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any, Dict, List, Optional, Tuple
+
+# (key in an eval record, column title, better: "high"/"low", format)
+IMAGE_COLUMNS: List[Tuple[str, str, str, str]] = [
+    ("psnr", "PSNR", "high", "{:.2f}"),
+    ("ssim", "SSIM", "high", "{:.3f}"),
+    ("lpips", "LPIPS", "low", "{:.3f}"),
+    ("clean_psnr", "clean PSNR", "high", "{:.2f}"),
+    ("clean_ssim", "clean SSIM", "high", "{:.3f}"),
+    ("depth_abs_rel", "depth abs-rel", "low", "{:.3f}"),
+    ("depth_abs_rel_far", "far-third abs-rel", "low", "{:.3f}"),
+    ("mean_backscatter", "mean backscatter", "low", "{:.4f}"),
+]
+MEDIUM_COLUMNS = [("beta_D", "β_D err"), ("beta_B", "β_B err"), ("B_inf", "B∞ err")]
+
+PLOTTED: List[Tuple[str, str, bool]] = [
+    ("psnr", "in-medium PSNR (dB) ↑", False),
+    ("clean_psnr", "clean PSNR (dB) ↑", False),
+    ("ssim", "SSIM ↑", False),
+    ("depth_abs_rel", "depth abs-rel ↓", True),
+    ("depth_abs_rel_far", "far-third depth abs-rel ↓", True),
+    ("medium:beta_D", "β_D mean rel. error ↓", True),
+    ("medium:beta_B", "β_B mean rel. error ↓", True),
+    ("medium:B_inf", "B∞ mean rel. error ↓", True),
+    ("mean_backscatter", "mean backscatter ↓", False),
+]
+
+
+def _value(record: Dict[str, Any], key: str) -> float:
+    if key.startswith("medium:"):
+        err = record.get("medium_error", {}).get(key.split(":", 1)[1])
+        if not err:
+            return float("nan")
+        value = err["rel_mean"]
+        return float(value) if value is not None else float("nan")
+    value = record.get("metrics", {}).get(key)
+    return float("nan") if value is None else float(value)
+
+
+def _fmt(value: Optional[float], fmt: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "n/a"
+    if isinstance(value, float) and math.isinf(value):
+        return "inf"
+    return fmt.format(value)
+
+
+def _medium_cell(record: Dict[str, Any], key: str) -> str:
+    err = (record.get("medium_error") or {}).get(key)
+    if err is None:
+        medium = record.get("medium")
+        if medium is None:
+            return "n/a"
+        return "(" + ", ".join(f"{v:.3g}" for v in medium[key]) + ")"
+    rel = err["rel"]
+    if all(isinstance(r, float) and math.isnan(r) for r in rel):  # truth is 0: absolute values
+        return "pred (" + ", ".join(f"{v:.3g}" for v in err["pred"]) + ")"
+    return f"{100 * err['rel_mean']:.0f}% (" + ", ".join(f"{100 * r:.0f}" for r in rel) + ")"
+
+
+def markdown_table(results: Dict[str, Any]) -> str:
+    """Final-evaluation table (one row per scene x method) and the per-evaluation curves."""
+    unit = "s" if results.get("budget_kind") == "seconds" else "iterations"
+    machine = results.get("machine", {})
+    lines = [
+        f"Budget: {results.get('budget'):.0f} {unit} of training per run; "
+        f"{machine.get('cpu_count')} CPU cores, torch {machine.get('torch')}, "
+        f"{machine.get('jobs', 1)} run(s) at once with {machine.get('torch_threads_per_run')} torch thread(s) each; "
+        f"load average {machine.get('loadavg_start', [float('nan')])[0]:.1f} at start, "
+        f"{machine.get('loadavg_end', [float('nan')])[0]:.1f} at end.",
+        "",
+    ]
+    head = ["scene", "method", "iters", "train s", "s/iter", "CPU s/iter", "peak RSS MB"]
+    head += [title for _, title, _, _ in IMAGE_COLUMNS]
+    head += [title for _, title in MEDIUM_COLUMNS]
+    lines.append("| " + " | ".join(head) + " |")
+    lines.append("|" + "---|" * len(head))
+    for run in results.get("runs", []):
+        final = run["evals"][-1] if run.get("evals") else {}
+        row = [
+            run["scene"],
+            f"`{run['method']}`",
+            str(run["iterations"]),
+            f"{run['train_time']:.0f}",
+            f"{run['sec_per_iter']:.2f}",
+            _fmt(run.get("cpu_sec_per_iter"), "{:.2f}"),
+            f"{run['peak_rss_mb']:.0f}",
+        ]
+        row += [_fmt(final.get("metrics", {}).get(key), fmt) for key, _, _, fmt in IMAGE_COLUMNS]
+        row += [_medium_cell(final, key) for key, _ in MEDIUM_COLUMNS]
+        lines.append("| " + " | ".join(row) + " |")
+    lines += [
+        "",
+        "Medium errors: mean relative error over RGB (per channel in brackets, %) of the median "
+        "over held-out rays, densities converted to 1/m; where the truth is 0, the predicted values.",
+        "",
+        "### Curves (every evaluation)",
+        "",
+    ]
+    head2 = ["scene", "method", "iter", "train s"] + [title for key, title, _ in PLOTTED]
+    lines.append("| " + " | ".join(head2) + " |")
+    lines.append("|" + "---|" * len(head2))
+    for run in results.get("runs", []):
+        for record in run.get("evals", []):
+            row = [run["scene"], f"`{run['method']}`", str(record["step"]), f"{record['train_time']:.0f}"]
+            row += [_fmt(_value(record, key), "{:.3f}") for key, _, _ in PLOTTED]
+            lines.append("| " + " | ".join(row) + " |")
+    if results.get("failures"):
+        lines += ["", "Failed runs:", ""] + [f"- {f}" for f in results["failures"]]
+    return "\n".join(lines) + "\n"
+
+
+def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
+    """One figure per scene: each error against training wall time, one line per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    runs = [r for r in results.get("runs", []) if r["scene"] == scene]
+    keys = [(k, t, log) for k, t, log in PLOTTED if any(math.isfinite(_value(e, k)) for r in runs for e in r["evals"])]
+    cols = 3
+    rows = max(1, math.ceil(len(keys) / cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
+    xlabel = "training wall time (s)" if results.get("budget_kind", "seconds") == "seconds" else "training wall time (s)"
+    for ax, (key, title, log) in zip(axes.flat, keys):
+        for run in runs:
+            xs = [e["train_time"] for e in run["evals"]]
+            ys = [_value(e, key) for e in run["evals"]]
+            pts = [(x, y) for x, y in zip(xs, ys) if math.isfinite(y) and x > 0]
+            if not pts:
+                continue
+            ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=run["method"])
+        ax.set_title(title, fontsize=10)
+        ax.set_xscale("log")
+        if log and all(_value(e, key) > 0 for r in runs for e in r["evals"] if math.isfinite(_value(e, key))):
+            ax.set_yscale("log")
+        ax.set_xlabel(xlabel, fontsize=8)
+        ax.grid(True, which="both", alpha=0.3)
+    for ax in list(axes.flat)[len(keys) :]:
+        ax.axis("off")
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    if handles:
+        fig.legend(handles, labels, loc="lower center", ncol=min(4, len(labels)), fontsize=9)
+    fig.suptitle(f"seathru-bench: {scene}", fontsize=12)
+    fig.tight_layout(rect=(0, 0.06, 1, 0.96))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def write_report(results: Dict[str, Any], out: Path) -> Dict[str, Path]:
+    """Write ``results.md`` and ``bench_<scene>.png`` into ``out``; returns their paths."""
+    out.mkdir(parents=True, exist_ok=True)
+    written = {"table": out / "results.md"}
+    written["table"].write_text("# seathru-bench results\n\n" + markdown_table(results))
+    for scene in dict.fromkeys(r["scene"] for r in results.get("runs", [])):
+        safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in scene)
+        written[f"plot:{scene}"] = plot_scene(results, scene, out / f"bench_{safe}.png")
+    return written

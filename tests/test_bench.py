@@ -1,0 +1,237 @@
+"""seathru-bench: metric functions on known answers, method specs, the report, and a tiny
+end-to-end benchmark run (two methods, one tiny scene, a few iterations)."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from seathru_nerfstudio import metrics
+from seathru_nerfstudio.bench import report, scoring
+from seathru_nerfstudio.bench.methods import apply_overrides, build_config, matched_nerfacto_config, parse_spec
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+
+# ---------------------------------------------------------------- metrics with known answers
+
+
+def test_psnr_identical_images_is_capped_not_nan():
+    image = torch.rand(8, 9, 3)
+    value = metrics.psnr(image, image)
+    assert math.isfinite(value) and value >= 190.0  # mse clamped at 1e-20 -> 200 dB
+
+
+@pytest.mark.parametrize("offset", [0.5, 0.1, 0.01])
+def test_psnr_known_offset(offset):
+    target = torch.full((6, 7, 3), 0.25)
+    assert metrics.psnr(target + offset, target) == pytest.approx(-10 * math.log10(offset**2), abs=1e-3)
+
+
+@pytest.mark.parametrize("k", [0.5, 1.0, 1.25, 3.0])
+def test_depth_abs_rel_known_scale(k):
+    gt = torch.linspace(1.0, 5.0, 40).reshape(5, 8, 1)
+    gt[0, 0, 0] = float("inf")  # open water is ignored
+    assert metrics.depth_abs_rel(gt.clamp_max(10) * k, gt) == pytest.approx(abs(k - 1), abs=1e-6)
+    far = metrics.far_third_mask(gt)
+    assert metrics.depth_abs_rel(gt.clamp_max(10) * k, gt, far) == pytest.approx(abs(k - 1), abs=1e-6)
+
+
+def test_far_third_mask_takes_the_farthest_third_and_no_open_water():
+    gt = torch.arange(1, 31, dtype=torch.float32).reshape(5, 6, 1)
+    gt[0, 0, 0] = float("inf")
+    mask = metrics.far_third_mask(gt)
+    finite = gt[torch.isfinite(gt)]
+    assert not bool(mask[0, 0, 0])
+    assert int(mask.sum()) == pytest.approx(len(finite) / 3, abs=1)
+    assert float(gt[mask].min()) >= float(torch.quantile(finite, 2 / 3))
+
+
+def test_medium_error_against_known_parameters():
+    truth = {"beta_D": [1.0, 2.0, 4.0], "beta_B": [0.5, 0.5, 0.5], "B_inf": [0.1, 0.2, 0.4]}
+    pred = {"beta_D": [1.1, 1.8, 4.0], "beta_B": [0.5, 0.5, 0.5], "B_inf": [0.05, 0.3, 0.4]}
+    err = scoring.medium_error(pred, truth)
+    assert err["beta_D"]["rel"] == pytest.approx([0.1, 0.1, 0.0])
+    assert err["beta_D"]["rel_mean"] == pytest.approx(0.2 / 3)
+    assert err["beta_B"]["rel_mean"] == pytest.approx(0.0)
+    assert err["B_inf"]["rel"] == pytest.approx([0.5, 0.5, 0.0])
+    assert err["B_inf"]["abs"] == pytest.approx([0.05, 0.1, 0.0])
+
+
+def test_medium_error_in_clear_air_has_no_relative_error():
+    zero = {k: [0.0, 0.0, 0.0] for k in scoring.MEDIUM_KEYS}
+    pred = {k: [0.1, 0.2, 0.3] for k in scoring.MEDIUM_KEYS}
+    err = scoring.medium_error(pred, zero)
+    assert all(math.isnan(r) for r in err["beta_D"]["rel"]) and math.isnan(err["beta_D"]["rel_mean"])
+    assert err["beta_D"]["abs_mean"] == pytest.approx(0.2)
+
+
+def test_medium_per_metre_converts_densities_with_the_dataparser_scale_and_takes_medians():
+    # 101 rays; medians 0.5 (sigma per scene unit), scale 0.25 scene units per metre -> 0.125/m.
+    rays = torch.linspace(0.0, 1.0, 101)[:, None].expand(101, 3)
+    c_med = torch.tensor([0.1, 0.2, 0.3]).expand(101, 3)
+    out = scoring.medium_per_metre(c_med, rays * 1.0, rays * 2.0, dataparser_scale=0.25)
+    assert out["beta_D"] == pytest.approx([0.125] * 3)
+    assert out["beta_B"] == pytest.approx([0.25] * 3)
+    assert out["B_inf"] == pytest.approx([0.1, 0.2, 0.3])
+
+
+def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
+    h, w = 24, 32
+    gt = torch.full((h, w, 3), 0.3)
+    gt_clean = torch.full((h, w, 3), 0.6)
+    depth = torch.full((h, w, 1), 2.0)
+    depth[:4] = float("inf")  # open water rows: no clean colour, no depth
+    scale = 0.5
+    batch = {"image": gt, "gt_clean": gt_clean, "gt_depth": depth * scale}
+    outputs = {"rgb": gt + 0.1, "depth": depth.clamp_max(5) * scale * 1.5}
+    m = scoring.view_metrics(outputs, batch, dataparser_scale=scale)
+    assert m["psnr"] == pytest.approx(20.0, abs=1e-3)
+    assert m["clean_psnr"] == pytest.approx(-10 * math.log10(0.2**2), abs=1e-3)  # rgb 0.4 vs 0.6
+    assert m["depth_abs_rel"] == pytest.approx(0.5, abs=1e-6)
+    assert m["depth_abs_rel_far"] == pytest.approx(0.5, abs=1e-6)
+    assert "mean_backscatter" not in m
+    outputs.update(clean=gt_clean.clone(), backscatter=torch.full((h, w, 3), 0.02))
+    m = scoring.view_metrics(outputs, batch, dataparser_scale=scale)
+    assert m["clean_psnr"] >= 190 and m["mean_backscatter"] == pytest.approx(0.02)
+
+
+def test_mean_metrics_skips_nan_and_log_spaced_ends_at_budget():
+    assert scoring.mean_metrics([{"a": 1.0}, {"a": float("nan")}, {"a": 3.0}])["a"] == 2.0
+    points = scoring.log_spaced(480.0, 5, 1 / 16)
+    assert points[0] == pytest.approx(30.0) and points[-1] == pytest.approx(480.0)
+    assert all(b / a == pytest.approx(2.0) for a, b in zip(points, points[1:]))
+
+
+# ---------------------------------------------------------------- methods
+
+
+def test_method_spec_overrides():
+    assert parse_spec("seathru-nerf-lite:quadrature=paper,medium_model=basic") == (
+        "seathru-nerf-lite",
+        {"quadrature": "paper", "medium_model": "basic"},
+    )
+    config = build_config("seathru-nerf-lite:quadrature=paper,num_nerf_samples_per_ray=16")
+    assert config.pipeline.model.quadrature == "paper"
+    assert config.pipeline.model.num_nerf_samples_per_ray == 16
+    config = build_config("nerfacto:pipeline.datamanager.train_num_rays_per_batch=256,proposal_warmup=7")
+    assert config.pipeline.datamanager.train_num_rays_per_batch == 256
+    assert config.pipeline.model.proposal_warmup == 7
+    with pytest.raises(ValueError):
+        build_config("seathru-nerf-lite:no_such_field=1")
+    with pytest.raises(ValueError):
+        build_config("no-such-method")
+    with pytest.raises(ValueError):
+        apply_overrides(build_config("nerfacto"), {"use_appearance_embedding": "maybe"})
+
+
+def test_matched_nerfacto_has_seathru_lite_capacity():
+    from nerfstudio.models.nerfacto import NerfactoModelConfig
+
+    from seathru_nerfstudio.config import seathru_nerf_lite_config
+    from seathru_nerfstudio.model import SeathruModelConfig
+
+    ours, theirs = seathru_nerf_lite_config(), matched_nerfacto_config()
+    assert type(theirs.pipeline.model) is NerfactoModelConfig
+    assert not isinstance(theirs.pipeline.model, SeathruModelConfig)
+    for name in (
+        "implementation",
+        "num_proposal_samples_per_ray",
+        "num_nerf_samples_per_ray",
+        "log2_hashmap_size",
+        "num_levels",
+        "max_res",
+        "use_appearance_embedding",
+        "distortion_loss_mult",
+        "near_plane",
+        "far_plane",
+        "proposal_warmup",
+        "average_init_density",
+    ):
+        assert getattr(theirs.pipeline.model, name) == getattr(ours.pipeline.model, name), name
+    assert theirs.pipeline.model.camera_optimizer.mode == "off"
+    assert theirs.pipeline.datamanager._target == ours.pipeline.datamanager._target
+    assert theirs.pipeline.datamanager.train_num_rays_per_batch == ours.pipeline.datamanager.train_num_rays_per_batch
+    assert theirs.optimizers.keys() == ours.optimizers.keys()
+
+
+# ---------------------------------------------------------------- report (no training)
+
+
+def _fake_results():
+    def run(method, psnr, medium=True):
+        evals = []
+        for step, t in ((10, 5.0), (20, 10.0)):
+            record = {
+                "step": step,
+                "train_time": t,
+                "metrics": {"psnr": psnr + step / 10, "ssim": 0.5, "clean_psnr": 20.0, "depth_abs_rel": 0.3, "depth_abs_rel_far": 0.2},
+            }
+            if medium:
+                record["medium_error"] = scoring.medium_error(
+                    {"beta_D": [1.1, 1.0, 1.0], "beta_B": [1, 1, 1], "B_inf": [0.2, 0.2, 0.2]},
+                    {"beta_D": [1.0, 1.0, 1.0], "beta_B": [1, 1, 1], "B_inf": [0.2, 0.2, 0.2]},
+                )
+            evals.append(record)
+        return {"method": method, "scene": "water", "iterations": 20, "train_time": 10.0, "sec_per_iter": 0.5,
+                "cpu_sec_per_iter": 0.4, "peak_rss_mb": 100.0, "evals": evals}
+
+    return {"budget_kind": "seconds", "budget": 10.0, "machine": {"cpu_count": 2, "jobs": 2},
+            "runs": [run("seathru-nerf-lite", 25.0), run("nerfacto", 24.0, medium=False)]}
+
+
+def test_report_writes_table_and_plot(tmp_path):
+    written = report.write_report(_fake_results(), tmp_path)
+    table = written["table"].read_text()
+    assert "| water | `seathru-nerf-lite` | 20 |" in table
+    assert "27.00" in table  # final in-medium PSNR of seathru (25 + 20/10)
+    assert "3% (10, 0, 0)" in table  # beta_D error: mean and per channel
+    assert "| water | `nerfacto` |" in table and "n/a" in table
+    png = written["plot:water"].read_bytes()
+    assert png.startswith(PNG_MAGIC) and len(png) > 10_000
+
+
+# ---------------------------------------------------------------- tiny end-to-end run
+
+
+def test_tiny_benchmark_run_end_to_end(tmp_path):
+    out = tmp_path / "bench"
+    cmd = [
+        sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run",
+        "--scenes", "water", "--methods", "seathru-nerf-lite", "nerfacto",
+        "--output-dir", str(out), "--budget-iterations", "3", "--num-evals", "2",
+        "--first-eval-fraction", "0.34", "--jobs", "2", "--width", "32", "--height", "24", "--num-views", "6",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results["failures"] == []
+    assert results["budget_kind"] == "iterations" and results["budget"] == 3
+    assert [r["method"] for r in results["runs"]] == ["seathru-nerf-lite", "nerfacto"]
+    for run in results["runs"]:
+        assert run["iterations"] == 3 and run["scene"] == "water"
+        assert [e["step"] for e in run["evals"]] == [1, 3]
+        assert run["train_time"] > 0 and run["sec_per_iter"] > 0 and run["peak_rss_mb"] > 100
+        assert run["dataparser_scale"] > 0
+        final = run["evals"][-1]["metrics"]
+        for key in ("psnr", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel", "depth_abs_rel_far"):
+            assert math.isfinite(final[key]), key
+        assert len(run["evals"][-1]["per_view"]) == 2  # views 0 and 5 of 6 are held out
+    seathru, nerfacto = results["runs"]
+    err = seathru["evals"][-1]["medium_error"]
+    assert set(err) == {"beta_D", "beta_B", "B_inf"}
+    assert err["beta_D"]["true"] == [1.3, 1.2, 0.9] and all(math.isfinite(x) for x in err["beta_D"]["rel"])
+    assert "mean_backscatter" in seathru["evals"][-1]["metrics"]
+    assert "medium_error" not in nerfacto["evals"][-1] and "mean_backscatter" not in nerfacto["evals"][-1]["metrics"]
+    assert seathru["config"]["model"] == "SeathruModelConfig" and nerfacto["config"]["model"] == "NerfactoModelConfig"
+
+    table = (out / "results.md").read_text()
+    assert "| water | `seathru-nerf-lite` | 3 |" in table and "| water | `nerfacto` | 3 |" in table
+    png = (out / "bench_water.png").read_bytes()
+    assert png.startswith(PNG_MAGIC) and len(png) > 10_000
