@@ -1,0 +1,103 @@
+"""Make ``docs/images/viewer.png``: nerfstudio's viewer on a trained SeaThru checkpoint, seen
+from a training camera, with the Water controls in view, photographed by headless chromium.
+
+    python tests/browser/make_screenshot.py --load-config outputs/.../config.yml \\
+        [--output docs/images/viewer.png] [--camera 1] [--output-type water_split]
+
+Runs the viewer in this process (as ``ns-viewer`` does) so it can put the browser's camera
+on a training view.
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).parent))
+import viewer_page  # noqa: E402
+
+HIDE_REMOTE_IMAGES = 'img[alt="NerfStudio Logo"] { visibility: hidden; }'
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--load-config", type=Path, required=True)
+    parser.add_argument("--output", type=Path, default=Path("docs/images/viewer.png"))
+    parser.add_argument("--camera", type=int, default=1, help="training camera to look through")
+    parser.add_argument("--output-type", default="rgb", help="output shown (rgb, clean, water_split, ...)")
+    parser.add_argument("--max-res-steps", type=int, default=2, help="Max res = 64 + 100 * steps")
+    parser.add_argument("--width", type=int, default=1100)
+    parser.add_argument("--height", type=int, default=760)
+    parser.add_argument("--timeout", type=float, default=900)
+    args = parser.parse_args()
+
+    import viser.transforms as vtf
+
+    from nerfstudio.configs.base_config import ViewerConfig
+    from nerfstudio.utils.eval_utils import eval_setup
+    from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
+
+    _, pipeline, _, step = eval_setup(args.load_config, test_mode="test")
+    port = viewer_page.free_port()
+    viewer = Viewer(
+        ViewerConfig(websocket_port=port, image_format="png", max_num_display_images=0),
+        log_filename=args.load_config.parent / "viewer_log_filename.txt",
+        datapath=pipeline.datamanager.get_datapath(),
+        pipeline=pipeline,
+        train_lock=None,
+    )
+    dataset = pipeline.datamanager.train_dataset
+    viewer.init_scene(train_dataset=dataset, train_state="completed")
+    viewer.update_scene(step=step)
+
+    camera = dataset.cameras[args.camera]
+    c2w = camera.camera_to_worlds.numpy()
+    rotation = vtf.SO3.from_matrix(c2w[:3, :3]) @ vtf.SO3.from_x_radians(np.pi)
+    fov = float(2 * np.arctan(float(camera.cy) / float(camera.fy)))
+
+    @viewer.viser_server.on_client_connect
+    def _(client) -> None:
+        with client.atomic():
+            client.camera.fov = fov
+            client.camera.wxyz = rotation.wxyz
+            client.camera.position = c2w[:3, 3] * VISER_NERFSTUDIO_SCALE_RATIO
+
+    max_res = 64 + 100 * args.max_res_steps
+    with viewer_page.browser_page(args.width, args.height) as page:
+        view = viewer_page.ViewerPage(page, f"http://127.0.0.1:{port}")
+        view.open()
+        page.add_style_tag(content=HIDE_REMOTE_IMAGES)
+        view.wait_for_label("Water")
+        thumb = view.slider_thumb("Max res")
+        thumb.focus()
+        thumb.press("Home")
+        for _ in range(args.max_res_steps):
+            thumb.press("ArrowRight")
+        view.wait_for_render(max_res, timeout=args.timeout)
+        if args.output_type != "rgb":
+            view.choose_option("Output type", args.output_type)
+            time.sleep(1.0)
+            view.wait_for_render(max_res, timeout=args.timeout)
+        page.mouse.move(5, args.height - 5)  # no tooltip
+        view.show_label("sRGB display")
+        time.sleep(1.0)
+        png = page.screenshot()
+
+    from PIL import Image
+
+    image = Image.open(io.BytesIO(png)).convert("RGB")
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    image.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
+        args.output, optimize=True
+    )
+    print(f"wrote {args.output} ({args.output.stat().st_size // 1024} KB), {image.size}")
+    viewer.viser_server.stop()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,65 @@
+"""A tiny SeaThru checkpoint through the real CLIs (seathru-synth, ns-train), for the viewer
+and render tests: a few iterations of a small model, cheap to render on a loaded CPU."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Dict
+
+BIN = Path(sys.executable).parent
+
+# Few samples and a small hash grid: renders ~4x cheaper than seathru-nerf-lite's defaults.
+SMALL_MODEL = [
+    "--pipeline.model.num-proposal-samples-per-ray", "16", "8",
+    "--pipeline.model.num-nerf-samples-per-ray", "16",
+    "--pipeline.model.num-levels", "4",
+    "--pipeline.model.log2-hashmap-size", "12",
+    "--pipeline.model.max-res", "128",
+]  # fmt: skip
+
+
+def quiet_env(threads: int = 1) -> Dict[str, str]:
+    """One math thread per process: the machine's two cores are shared."""
+    return dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+
+
+def run(*args, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
+    result = subprocess.run(
+        [str(a) for a in args], cwd=cwd, env=quiet_env(), capture_output=True, text=True, timeout=timeout
+    )
+    assert result.returncode == 0, f"{args[0]} failed:\n{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
+    return result
+
+
+def train_tiny(root: Path, iterations: int = 8, width: int = 64, height: int = 48) -> Dict[str, Path]:
+    """Synthetic water scene (8 views) and a checkpoint after ``iterations`` steps.
+
+    ``SEATHRU_TINY_CHECKPOINT=<dir>`` reuses (or first fills) that folder instead: for
+    iterating on the tests locally."""
+    reuse = os.environ.get("SEATHRU_TINY_CHECKPOINT")
+    if reuse:
+        root = Path(reuse)
+        root.mkdir(parents=True, exist_ok=True)
+        found = list((root / "outputs").glob("*/seathru-nerf-lite/*/config.yml"))
+        if found:
+            return {"root": root, "scene": root / "scene", "config": found[0]}
+    scene = root / "scene"
+    run(BIN / "seathru-synth", "--output-dir", scene, "--width", width, "--height", height, "--num-views", 8, cwd=root)
+    run(
+        BIN / "ns-train", "seathru-nerf-lite",
+        "--data", scene,
+        "--output-dir", root / "outputs",
+        "--max-num-iterations", iterations,
+        "--steps-per-save", iterations,
+        "--steps-per-eval-batch", 1000,
+        "--steps-per-eval-image", 1000,
+        "--pipeline.datamanager.train-num-rays-per-batch", 128,
+        *SMALL_MODEL,
+        "--vis", "tensorboard",
+        cwd=root,
+    )  # fmt: skip
+    (config,) = list((root / "outputs").glob("*/seathru-nerf-lite/*/config.yml"))
+    return {"root": root, "scene": scene, "config": config}
