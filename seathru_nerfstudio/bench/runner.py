@@ -192,7 +192,10 @@ def run_benchmark(config: RunConfig) -> Dict[str, Any]:
 
         def pump(i: int, proc: subprocess.Popen) -> None:
             assert proc.stdout is not None
+            events = open(Path(queue[i]["run_dir"]) / "events.jsonl", "w")
             for line in proc.stdout:
+                events.write(line)
+                events.flush()
                 try:
                     event = json.loads(line)
                 except json.JSONDecodeError:

@@ -11,6 +11,7 @@ fresh interpreter and data-loader process.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import platform
@@ -28,6 +29,16 @@ import torch
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.bench import scoring
 from seathru_nerfstudio.bench.methods import build_config, parse_spec
+
+
+def _linear_outputs():
+    """Camera renders of a SeathruModel may be display renders (viewer exposure, sRGB,
+    overrides); metrics must see the plain linear outputs."""
+    try:
+        from seathru_nerfstudio.viewer import linear_outputs
+    except ImportError:  # an older tree without the viewer controls
+        return contextlib.nullcontext()
+    return linear_outputs()
 
 
 def _emit(event: str, **payload: Any) -> None:
@@ -76,7 +87,8 @@ def evaluate(pipeline, lpips, scale: float, truth) -> Dict[str, Any]:
         for i in range(len(dataset)):
             batch = dataset[i]
             camera = dataset.cameras[i : i + 1].to(model.device)
-            outputs = model.get_outputs_for_camera(camera)
+            with _linear_outputs():
+                outputs = model.get_outputs_for_camera(camera)
             per_view.append(scoring.view_metrics(outputs, batch, scale, lpips))
             for key in media:
                 if key in outputs:
@@ -215,8 +227,27 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     return result
 
 
+def _kill_children_on_sigterm() -> None:
+    """A killed run must not leave its data-loader processes behind (they are daemons of
+    this process, which only a normal interpreter exit would stop)."""
+    import os
+    import signal
+
+    def handler(signum, frame):  # noqa: ARG001
+        try:
+            import psutil
+
+            for child in psutil.Process().children(recursive=True):
+                child.kill()
+        finally:
+            os._exit(128 + signum)
+
+    signal.signal(signal.SIGTERM, handler)
+
+
 def main(argv: Optional[List[str]] = None) -> None:
     argv = sys.argv[1:] if argv is None else argv
+    _kill_children_on_sigterm()
     spec = json.loads(Path(argv[0]).read_text())
     try:
         run(spec)
