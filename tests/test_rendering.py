@@ -9,12 +9,21 @@ import torch
 
 from seathru_nerfstudio.rendering import absorbed_fraction, formation_model, render_seathru
 
-torch.set_default_dtype(torch.float64)
 
-BETA_D = torch.tensor([1.3, 1.2, 0.9])
-BETA_B = torch.tensor([0.95, 0.85, 0.7])
-B_INF = torch.tensor([0.07, 0.2, 0.39])
-J = torch.tensor([0.8, 0.5, 0.3])
+
+@pytest.fixture(autouse=True)
+def float64_by_default():
+    """Reference maths in float64, restored afterwards (other modules expect float32)."""
+    previous = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(previous)
+
+
+BETA_D = torch.tensor([1.3, 1.2, 0.9], dtype=torch.float64)
+BETA_B = torch.tensor([0.95, 0.85, 0.7], dtype=torch.float64)
+B_INF = torch.tensor([0.07, 0.2, 0.39], dtype=torch.float64)
+J = torch.tensor([0.8, 0.5, 0.3], dtype=torch.float64)
 
 
 def uneven_bins(num: int, near: float, far: float, seed: int) -> tuple[torch.Tensor, torch.Tensor]:
