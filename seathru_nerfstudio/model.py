@@ -15,6 +15,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.model_components.losses import scale_gradients_by_distance_squared
+from nerfstudio.model_components.scene_colliders import NearFarCollider
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils import colormaps
 
@@ -80,6 +81,13 @@ class SeathruModel(NerfactoModel):
             init_density=self.config.medium_init_density,
             implementation=self.config.implementation,
         )
+        metadata = self.kwargs.get("metadata") or {}
+        if "near_plane" in metadata:
+            # The scene's own near bound (seathru-data: poses_bounds.npy), with a margin; the
+            # renderer adds the water in front of it in closed form, so nothing is lost.
+            self.collider = NearFarCollider(
+                near_plane=0.9 * float(metadata["near_plane"]), far_plane=self.config.far_plane
+            )
         # Viewer controls and display transform (no parameters; never applied in training).
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
 

@@ -232,3 +232,11 @@ def test_nerfstudio_checkpoints_load_with_weights_only(tmp_path):
     assert plain.returncode != 0 and "weights_only" in plain.stderr.lower() + plain.stdout.lower()
     fixed = subprocess.run([sys.executable, "-c", "import seathru_nerfstudio.config; " + load], capture_output=True, text=True)
     assert fixed.returncode == 0, fixed.stderr[-2000:]
+
+
+def test_collider_uses_the_scenes_near_bound_when_the_dataparser_gives_one():
+    config = tiny_model().config
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    with_bounds = config.setup(scene_box=box, num_train_data=4, metadata={"near_plane": 0.5, "far_plane": 9.0})
+    assert with_bounds.collider.near_plane == pytest.approx(0.45)
+    assert tiny_model().collider.near_plane == config.near_plane
