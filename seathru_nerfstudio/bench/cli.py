@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Union
+from typing import Optional, Tuple, Union
 
 import tyro
 from typing_extensions import Annotated
@@ -15,10 +15,14 @@ from seathru_nerfstudio.bench.runner import RunConfig
 
 @dataclass
 class ReportConfig:
-    """Write results.md and the plots again from an existing results.json."""
+    """Write results.md and the plots again from results.json files (several are merged:
+    their runs are concatenated, the machine record is the first file's)."""
 
-    results: Path = Path("outputs/bench/results.json")
-    """The results.json of a `seathru-bench run`."""
+    results: Tuple[Path, ...] = (Path("outputs/bench/results.json"),)
+    """results.json files of `seathru-bench run`."""
+    output_dir: Optional[Path] = None
+    """Where to write (default: beside the first results.json); with several inputs, the
+    merged results.json is written there too."""
 
 
 def entrypoint() -> None:
@@ -42,9 +46,14 @@ def entrypoint() -> None:
     else:
         import json
 
-        from seathru_nerfstudio.bench.report import write_report
+        from seathru_nerfstudio.bench.report import merge_results, write_report
 
-        write_report(json.loads(command.results.read_text()), command.results.parent)
+        results = merge_results([json.loads(p.read_text()) for p in command.results])
+        out = command.output_dir or command.results[0].parent
+        if len(command.results) > 1:
+            out.mkdir(parents=True, exist_ok=True)
+            (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
+        write_report(results, out)
 
 
 if __name__ == "__main__":

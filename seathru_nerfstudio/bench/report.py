@@ -111,6 +111,9 @@ def markdown_table(results: Dict[str, Any]) -> str:
             row = [run["scene"], f"`{run['method']}`", str(record["step"]), f"{record['train_time']:.0f}"]
             row += [_fmt(_value(record, key), "{:.3f}") for key, _, _ in PLOTTED]
             lines.append("| " + " | ".join(row) + " |")
+    dirty = sorted({f for run in results.get("runs", []) for f in (run.get("code") or {}).get("dirty_files", [])})
+    commits = sorted({(run.get("code") or {}).get("commit", "?")[:10] for run in results.get("runs", [])})
+    lines += ["", f"Code: commit(s) {', '.join(commits)}" + (f"; **uncommitted changes in {', '.join(dirty)}**" if dirty else "; clean tree") + "."]
     if results.get("failures"):
         lines += ["", "Failed runs:", ""] + [f"- {f}" for f in results["failures"]]
     return "\n".join(lines) + "\n"
@@ -122,6 +125,7 @@ def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    import matplotlib.ticker
 
     runs = [r for r in results.get("runs", []) if r["scene"] == scene]
     keys = [(k, t, log) for k, t, log in PLOTTED if any(math.isfinite(_value(e, k)) for r in runs for e in r["evals"])]
@@ -139,8 +143,10 @@ def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
             ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=run["method"])
         ax.set_title(title, fontsize=10)
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         if log and all(_value(e, key) > 0 for r in runs for e in r["evals"] if math.isfinite(_value(e, key))):
             ax.set_yscale("log")
+            ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel(xlabel, fontsize=8)
         ax.grid(True, which="both", alpha=0.3)
     for ax in list(axes.flat)[len(keys) :]:
@@ -153,6 +159,17 @@ def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
     fig.savefig(path, dpi=110)
     plt.close(fig)
     return path
+
+
+def merge_results(parts: List[Dict[str, Any]]) -> Dict[str, Any]:
+    """One results record from several runs of ``seathru-bench run`` (runs concatenated)."""
+    merged = dict(parts[0])
+    merged["runs"] = [run for part in parts for run in part.get("runs", [])]
+    merged["failures"] = [f for part in parts for f in part.get("failures", [])]
+    merged["parts"] = [
+        {k: part.get(k) for k in ("created", "command", "budget_kind", "budget", "machine")} for part in parts
+    ]
+    return merged
 
 
 def write_report(results: Dict[str, Any], out: Path) -> Dict[str, Path]:

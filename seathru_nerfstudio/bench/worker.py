@@ -60,6 +60,34 @@ def _children_rss_mb() -> Optional[float]:
     return sum(c.memory_info().rss for c in psutil.Process().children(recursive=True)) / 2**20
 
 
+def code_state() -> Dict[str, Any]:
+    """The commit and the uncommitted changes of the package this process imported: a run on a
+    tree that someone is editing is not a run of any commit, and the record must say so."""
+    import hashlib
+    import subprocess
+
+    import seathru_nerfstudio
+
+    root = Path(seathru_nerfstudio.__file__).resolve().parent
+    state: Dict[str, Any] = {"package": str(root)}
+    try:
+        def git(*args: str) -> str:
+            return subprocess.run(
+                ["git", *args], cwd=root, capture_output=True, text=True, timeout=30, check=True
+            ).stdout.rstrip()
+
+        state["commit"] = git("rev-parse", "HEAD")
+        dirty = [line[3:] for line in git("status", "--porcelain", "--untracked-files=no", "--", ".").splitlines()]
+        state["dirty_files"] = dirty
+        top = Path(git("rev-parse", "--show-toplevel"))
+        state["dirty_sha256"] = {
+            f: hashlib.sha256((top / f).read_bytes()).hexdigest()[:16] for f in dirty if (top / f).is_file()
+        }
+    except (OSError, subprocess.SubprocessError) as error:
+        state["error"] = str(error)
+    return state
+
+
 def _seed(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed)
@@ -120,6 +148,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     eval_at = sorted(float(x) for x in spec["eval_at"])
     seed = int(spec.get("seed", 42))
 
+    code = code_state()  # at start: what this process imports is what it runs
     torch.set_num_threads(int(spec["threads"])) if spec.get("threads") else None
     config = build_config(spec["method"])
     config.data = scene
@@ -212,6 +241,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         "peak_rss_mb": _peak_rss_mb(),
         "data_worker_rss_mb": _children_rss_mb(),
         "num_parameters": n_params,
+        "code": code,
         "torch_threads": torch.get_num_threads(),
         "config": {
             "rays": config.pipeline.datamanager.train_num_rays_per_batch,
