@@ -31,12 +31,11 @@ def main() -> None:
     parser.add_argument("--camera", type=int, default=1, help="training camera to look through")
     parser.add_argument("--output-type", default="rgb", help="output shown (rgb, clean, water_split, ...)")
     parser.add_argument("--max-res-steps", type=int, default=2, help="Max res = 64 + 100 * steps")
-    parser.add_argument("--width", type=int, default=1100)
-    parser.add_argument("--height", type=int, default=760)
+    parser.add_argument("--width", type=int, default=1400, help="page width (the 3D view gets ~4:3)")
+    parser.add_argument("--height", type=int, default=800)
+    parser.add_argument("--max-kb", type=int, default=290, help="quantise the PNG if it is larger")
     parser.add_argument("--timeout", type=float, default=900)
     args = parser.parse_args()
-
-    import viser.transforms as vtf
 
     from nerfstudio.configs.base_config import ViewerConfig
     from nerfstudio.utils.eval_utils import eval_setup
@@ -56,21 +55,29 @@ def main() -> None:
     viewer.update_scene(step=step)
 
     camera = dataset.cameras[args.camera]
-    c2w = camera.camera_to_worlds.numpy()
-    rotation = vtf.SO3.from_matrix(c2w[:3, :3]) @ vtf.SO3.from_x_radians(np.pi)
-    fov = float(2 * np.arctan(float(camera.cy) / float(camera.fy)))
+    c2w = camera.camera_to_worlds.numpy()  # OpenGL convention: looks along -z, +y up
+    position = c2w[:3, 3] * VISER_NERFSTUDIO_SCALE_RATIO
+    fov = float(2 * np.arctan(float(camera.cy) / float(camera.fy)))  # vertical, radians
 
-    @viewer.viser_server.on_client_connect
-    def _(client) -> None:
-        with client.atomic():
-            client.camera.fov = fov
-            client.camera.wxyz = rotation.wxyz
-            client.camera.position = c2w[:3, 3] * VISER_NERFSTUDIO_SCALE_RATIO
+    def look_through_training_camera() -> None:
+        deadline = time.time() + 60
+        while time.time() < deadline:
+            clients = list(viewer.viser_server.get_clients().values())
+            if clients and all(c.camera._state.update_timestamp != 0.0 for c in clients):
+                break
+            time.sleep(0.2)
+        for client in viewer.viser_server.get_clients().values():
+            with client.atomic():
+                client.camera.fov = fov
+                client.camera.position = position
+                client.camera.look_at = position - c2w[:3, 2] * VISER_NERFSTUDIO_SCALE_RATIO
+                client.camera.up_direction = c2w[:3, 1]
 
     max_res = 64 + 100 * args.max_res_steps
     with viewer_page.browser_page(args.width, args.height) as page:
         view = viewer_page.ViewerPage(page, f"http://127.0.0.1:{port}")
         view.open()
+        look_through_training_camera()
         page.add_style_tag(content=HIDE_REMOTE_IMAGES)
         view.wait_for_label("Water")
         thumb = view.slider_thumb("Max res")
@@ -78,6 +85,7 @@ def main() -> None:
         thumb.press("Home")
         for _ in range(args.max_res_steps):
             thumb.press("ArrowRight")
+        thumb.evaluate("(el) => el.blur()")  # no value tooltip in the picture
         view.wait_for_render(max_res, timeout=args.timeout)
         if args.output_type != "rgb":
             view.choose_option("Output type", args.output_type)
@@ -92,9 +100,9 @@ def main() -> None:
 
     image = Image.open(io.BytesIO(png)).convert("RGB")
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    image.quantize(colors=256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE).save(
-        args.output, optimize=True
-    )
+    image.save(args.output, optimize=True)
+    if args.output.stat().st_size > args.max_kb * 1024:  # 256 dithered colours: no banding
+        image.quantize(colors=256, method=Image.Quantize.MEDIANCUT).save(args.output, optimize=True)
     print(f"wrote {args.output} ({args.output.stat().st_size // 1024} KB), {image.size}")
     viewer.viser_server.stop()
 
