@@ -88,20 +88,18 @@ def split_cli(trained):
     root = trained["root"]
     video = root / "cli" / "water_split.mp4"
     log = open(root / "ns-render.log", "w")
-    proc = subprocess.Popen(
+    proc = tiny_checkpoint.start_group(
         [
-            str(tiny_checkpoint.BIN / "ns-render"), "camera-path",
-            "--load-config", str(trained["config"]),
-            "--camera-path-filename", str(trained["camera_path"]),
-            "--output-path", str(video),
+            tiny_checkpoint.BIN / "ns-render", "camera-path",
+            "--load-config", trained["config"],
+            "--camera-path-filename", trained["camera_path"],
+            "--output-path", video,
             "--rendered-output-names", "water_split",
         ],
         cwd=root, env=tiny_checkpoint.quiet_env(), stdout=log, stderr=subprocess.STDOUT,
     )  # fmt: skip
     yield {"proc": proc, "video": video, "log": root / "ns-render.log"}
-    if proc.poll() is None:
-        proc.kill()
-    proc.wait(30)
+    tiny_checkpoint.stop_group(proc)  # its data-manager workers too, if it left any
     log.close()
 
 

@@ -53,25 +53,20 @@ def viewer_process(trained):
     port = viewer_page.free_port()
     log_path = trained["root"] / "ns-viewer.log"
     with open(log_path, "w") as log:
-        proc = subprocess.Popen(
+        proc = tiny_checkpoint.start_group(
             [
-                str(tiny_checkpoint.BIN / "ns-viewer"),
-                "--load-config", str(trained["config"]),
-                "--viewer.websocket-port", str(port),
+                tiny_checkpoint.BIN / "ns-viewer",
+                "--load-config", trained["config"],
+                "--viewer.websocket-port", port,
                 "--viewer.image-format", "png",  # lossless: pixel comparisons
-                "--viewer.max-num-display-images", "8",
+                "--viewer.max-num-display-images", 8,
             ],
             env=tiny_checkpoint.quiet_env(),
             stdout=log,
             stderr=subprocess.STDOUT,
         )  # fmt: skip
     yield {"proc": proc, "port": port, "log": log_path}
-    proc.terminate()
-    try:
-        proc.wait(30)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        proc.wait(30)
+    tiny_checkpoint.stop_group(proc)
 
 
 @pytest.fixture(scope="module")

@@ -4,8 +4,10 @@ and render tests: a few iterations of a small model, cheap to render on a loaded
 from __future__ import annotations
 
 import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 from typing import Dict
 
@@ -24,6 +26,34 @@ SMALL_MODEL = [
 def quiet_env(threads: int = 1) -> Dict[str, str]:
     """One math thread per process: the machine's two cores are shared."""
     return dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS=str(threads), MKL_NUM_THREADS=str(threads))
+
+
+def start_group(args, **kwargs) -> subprocess.Popen:
+    """Start a long-running CLI in its own process group: nerfstudio's data manager spawns
+    worker processes that outlive a plain terminate() of the CLI."""
+    return subprocess.Popen([str(a) for a in args], start_new_session=True, **kwargs)
+
+
+def stop_group(proc: subprocess.Popen, timeout: float = 30) -> None:
+    """Stop the CLI and every process it started (its process group): SIGTERM, then SIGKILL
+    whatever is left after ``timeout`` seconds."""
+    for sig in (signal.SIGTERM, signal.SIGKILL):
+        try:
+            os.killpg(proc.pid, sig)
+        except ProcessLookupError:
+            break  # nobody left
+        deadline = time.time() + timeout
+        while time.time() < deadline:
+            proc.poll()  # reap the leader, or the group never looks empty
+            try:
+                os.killpg(proc.pid, 0)
+            except ProcessLookupError:
+                break
+            time.sleep(0.2)
+        else:
+            continue
+        break
+    proc.wait(timeout)
 
 
 def run(*args, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
