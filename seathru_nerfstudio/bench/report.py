@@ -111,9 +111,13 @@ def markdown_table(results: Dict[str, Any]) -> str:
             row = [run["scene"], f"`{run['method']}`", str(record["step"]), f"{record['train_time']:.0f}"]
             row += [_fmt(_value(record, key), "{:.3f}") for key, _, _ in PLOTTED]
             lines.append("| " + " | ".join(row) + " |")
-    dirty = sorted({f for run in results.get("runs", []) for f in (run.get("code") or {}).get("dirty_files", [])})
-    commits = sorted({(run.get("code") or {}).get("commit", "?")[:10] for run in results.get("runs", [])})
-    lines += ["", f"Code: commit(s) {', '.join(commits)}" + (f"; **uncommitted changes in {', '.join(dirty)}**" if dirty else "; clean tree") + "."]
+    codes = [run.get("code") for run in results.get("runs", [])]
+    if codes and all(codes):
+        dirty = sorted({f for code in codes for f in code.get("dirty_files", [])})
+        commits = sorted({code.get("commit", "?")[:10] for code in codes})
+        lines += ["", f"Code: commit(s) {', '.join(commits)}" + (f"; **uncommitted changes in {', '.join(dirty)}**" if dirty else "; clean tree") + "."]
+    else:
+        lines += ["", "Code: commit not recorded for every run."]
     if results.get("failures"):
         lines += ["", "Failed runs:", ""] + [f"- {f}" for f in results["failures"]]
     return "\n".join(lines) + "\n"
