@@ -147,10 +147,17 @@ def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
             ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=run["method"])
         ax.set_title(title, fontsize=10)
         ax.set_xscale("log")
+        ticks = []
+        for t in sorted({round(e["train_time"]) for r in runs for e in r["evals"] if e["train_time"] > 0}):
+            if not ticks or t > 1.1 * ticks[-1]:  # runs evaluated at nearly the same time share a tick
+                ticks.append(t)
+        if ticks:  # label the evaluation times (a span inside one decade has no major log ticks)
+            ax.set_xticks(ticks if len(ticks) <= 6 else ticks[:: math.ceil(len(ticks) / 6)])
+            ax.xaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%d"))
         ax.xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-        if log and all(_value(e, key) > 0 for r in runs for e in r["evals"] if math.isfinite(_value(e, key))):
+        values = [_value(e, key) for r in runs for e in r["evals"] if math.isfinite(_value(e, key))]
+        if log and values and min(values) > 0 and max(values) > 10 * min(values):  # log only across decades
             ax.set_yscale("log")
-            ax.yaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
         ax.set_xlabel(xlabel, fontsize=8)
         ax.grid(True, which="both", alpha=0.3)
     for ax in list(axes.flat)[len(keys) :]:
