@@ -13,6 +13,7 @@ from torch.nn import Parameter
 
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
+from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.model_components.losses import scale_gradients_by_distance_squared
 from nerfstudio.model_components.scene_colliders import NearFarCollider
@@ -21,7 +22,7 @@ from nerfstudio.utils import colormaps
 
 from seathru_nerfstudio import metrics, viewer
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
-from seathru_nerfstudio.medium_field import MediumField
+from seathru_nerfstudio.medium_field import MediumField, MediumOutputs
 from seathru_nerfstudio.rendering import Quadrature, render_seathru
 
 IMAGE_OUTPUTS = ("rgb", "clean", "direct", "backscatter")
@@ -46,6 +47,10 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_model: Literal["final", "basic"] = "final"
     """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
     for both (eqs. 11-13), for the ablation."""
+    medium_warmup_steps: int = 1000
+    """Iterations over which the medium densities ramp up linearly from 0 (clear water). The
+    object field first learns the scene's geometry as nerfacto would; without the ramp the
+    medium can explain the whole image as veiling light before any surface forms (0: off)."""
     quadrature: Quadrature = "analytic"
     """``analytic``: exact integral of each piecewise-constant interval (reduces exactly to
     the SeaThru formation model). ``paper``: the sec. 4.3 sums as printed."""
@@ -91,6 +96,33 @@ class SeathruModel(NerfactoModel):
         # Viewer controls and display transform (no parameters; never applied in training).
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
 
+    @property
+    def medium_ramp(self) -> float:
+        """Scale on the medium densities: 0 -> 1 over the warm-up, 1 afterwards (and when a
+        checkpoint is loaded for eval or rendering)."""
+        warmup = self.config.medium_warmup_steps
+        step = getattr(self, "_medium_step", None)
+        if warmup <= 0 or step is None:
+            return 1.0
+        return min(1.0, step / warmup)
+
+    def get_training_callbacks(
+        self, training_callback_attributes: TrainingCallbackAttributes
+    ) -> List[TrainingCallback]:
+        callbacks = super().get_training_callbacks(training_callback_attributes)
+
+        def set_step(step: int) -> None:
+            self._medium_step = step
+
+        callbacks.append(
+            TrainingCallback(
+                where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
+                update_every_num_iters=1,
+                func=set_step,
+            )
+        )
+        return callbacks
+
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         param_groups = super().get_param_groups()
         param_groups["fields"] = param_groups["fields"] + list(self.medium_field.parameters())
@@ -105,6 +137,9 @@ class SeathruModel(NerfactoModel):
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         medium = self.medium_field(ray_bundle.directions)  # once per ray
         medium = viewer.override_medium(self, medium)  # identity unless a viewer/ns-render render
+        ramp = self.medium_ramp
+        if ramp < 1.0:
+            medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn * ramp, sigma_bs=medium.sigma_bs * ramp)
         sigma_attn = medium.sigma_bs if self.config.medium_model == "basic" else medium.sigma_attn
         render = render_seathru(
             object_rgb=field_outputs[FieldHeadNames.RGB],

@@ -240,3 +240,26 @@ def test_collider_uses_the_scenes_near_bound_when_the_dataparser_gives_one():
     with_bounds = config.setup(scene_box=box, num_train_data=4, metadata={"near_plane": 0.5, "far_plane": 9.0})
     assert with_bounds.collider.near_plane == pytest.approx(0.45)
     assert tiny_model().collider.near_plane == config.near_plane
+
+
+def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():
+    model = tiny_model(medium_warmup_steps=100)
+    model.eval()
+    bundle = rays(8, seed=5)
+    assert model.medium_ramp == 1.0  # a loaded checkpoint renders the full medium
+    with torch.no_grad():
+        full = model(bundle)
+        model._medium_step = 25
+        quarter = model(bundle)
+        model._medium_step = 0
+        clear = model(bundle)
+        model._medium_step = 400
+        after = model(bundle)
+    torch.testing.assert_close(quarter["medium_attenuation"], 0.25 * full["medium_attenuation"])
+    torch.testing.assert_close(quarter["medium_backscatter"], 0.25 * full["medium_backscatter"])
+    torch.testing.assert_close(clear["backscatter"], torch.zeros(8, 3))
+    torch.testing.assert_close(clear["rgb"], clear["clean"])
+    torch.testing.assert_close(after["rgb"], full["rgb"])
+    callbacks = model.get_training_callbacks(None)
+    callbacks[-1].run_callback_at_location(7, callbacks[-1].where_to_run[0])
+    assert model._medium_step == 7
