@@ -16,16 +16,6 @@ from seathru_nerfstudio.data.seathru_dataparser import SeathruDataError, Seathru
 from seathru_nerfstudio.data.sfm import llff_poses_bounds
 
 
-@pytest.fixture(autouse=True)
-def float32_default_dtype():
-    """nerfstudio's dataparsers assume torch's float32 default; keep these tests independent
-    of modules that change it globally (tests/test_rendering.py sets float64 at import)."""
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float32)
-    yield
-    torch.set_default_dtype(previous)
-
-
 WIDTH, HEIGHT = 1700, 6  # wider than nerfstudio's 1600 px auto-downscale threshold
 NAMES = [f"img_{i:02d}.png" for i in range(10)]
 FX, FY, CX, CY, K1, K2, P1, P2 = 1500.0, 1400.0, 851.0, 3.2, 0.01, -0.002, 0.001, 0.0005

@@ -10,22 +10,11 @@ from pathlib import Path
 import cv2  # before pycolmap (see seathru_nerfstudio/data/sfm.py)
 import numpy as np
 import pytest
-import torch
 
 from seathru_nerfstudio.data.process import ProcessReport, ProcessSeathruData, process
 from seathru_nerfstudio.data.raw import write_linear_png
 from seathru_nerfstudio.data.sfm import display_transform
 from seathru_nerfstudio.data.synthetic import SynthConfig, generate
-
-
-@pytest.fixture(autouse=True)
-def float32_default_dtype():
-    """nerfstudio's dataparsers assume torch's float32 default; keep these tests independent
-    of modules that change it globally (tests/test_rendering.py sets float64 at import)."""
-    previous = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float32)
-    yield
-    torch.set_default_dtype(previous)
 
 
 NUM_VIEWS = 16
