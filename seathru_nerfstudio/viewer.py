@@ -159,7 +159,7 @@ class SeathruViewerControls(nn.Module):
         )
 
     def forward(self, *args: Any, **kwargs: Any) -> None:  # pragma: no cover - holder only
-        raise NotImplementedError("SeathruViewerControls only holds viewer elements")
+        raise TypeError("SeathruViewerControls only holds viewer elements; it is not callable")
 
 
 def controls_of(model: nn.Module) -> Optional[SeathruViewerControls]:

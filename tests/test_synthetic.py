@@ -259,8 +259,7 @@ def test_refuses_non_empty_output_dir(tmp_path: Path):
 def _cli() -> str:
     exe = Path(sys.executable).parent / "seathru-synth"
     found = str(exe) if exe.exists() else shutil.which("seathru-synth")
-    if found is None:
-        pytest.skip("seathru-synth is not installed (pip install -e .)")
+    assert found is not None, "seathru-synth is not installed (pip install -e .)"
     return found
 
 
