@@ -6,7 +6,6 @@ import torch
 
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
 from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager, ParallelDataManagerConfig
-from nerfstudio.data.dataparsers.nerfstudio_dataparser import NerfstudioDataParserConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
@@ -14,8 +13,10 @@ from nerfstudio.plugins.types import MethodSpecification
 
 from seathru_nerfstudio import compat
 from seathru_nerfstudio.data.linear_images import LinearImageDataset
+from seathru_nerfstudio.data.nerfstudio_data import SeathruNerfstudioDataParserConfig
 from seathru_nerfstudio.model import SeathruModelConfig
 from seathru_nerfstudio.pipeline import SeathruPipelineConfig  # evaluates on linear outputs
+from seathru_nerfstudio.training import SeathruTrainerConfig  # non-finite guard, crash-safe checkpoints
 
 compat.allow_nerfstudio_checkpoints()
 
@@ -40,6 +41,7 @@ def _optimizers(max_steps: int) -> dict:
     return {
         "proposal_networks": adam(),
         "fields": adam(),
+        "medium": adam(),
         "camera_opt": {
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),
@@ -50,7 +52,7 @@ def _optimizers(max_steps: int) -> dict:
 def _datamanager(rays: int) -> ParallelDataManagerConfig:
     return ParallelDataManagerConfig(
         _target=ParallelDataManager[LinearImageDataset],
-        dataparser=NerfstudioDataParserConfig(),
+        dataparser=SeathruNerfstudioDataParserConfig(),
         train_num_rays_per_batch=rays,
         eval_num_rays_per_batch=rays,
     )
@@ -59,7 +61,7 @@ def _datamanager(rays: int) -> ParallelDataManagerConfig:
 def seathru_nerf_config() -> TrainerConfig:
     """Paper-faithful settings for a CUDA GPU: 16384 rays, the paper's 6x256 medium MLP."""
     iterations = 50_000
-    return TrainerConfig(
+    return SeathruTrainerConfig(
         method_name="seathru-nerf",
         steps_per_eval_batch=500,
         steps_per_save=2000,
@@ -85,7 +87,7 @@ def seathru_nerf_lite_config() -> TrainerConfig:
     """Sized for a CPU or laptop GPU: 1024 rays, 64/32 proposal and 32 NeRF samples,
     a 2^15-entry 8-level hash grid, torch implementation, a 2x64 medium MLP."""
     iterations = 1500
-    return TrainerConfig(
+    return SeathruTrainerConfig(
         method_name="seathru-nerf-lite",
         steps_per_eval_batch=100,
         steps_per_eval_image=500,

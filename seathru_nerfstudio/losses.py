@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import torch
 from jaxtyping import Float
 from torch import Tensor
@@ -20,13 +22,17 @@ def rawnerf_loss(
 
 
 def binary_transmittance_loss(
-    transmittance: Float[Tensor, "*batch S 1"], scale: float = 0.1
+    transmittance: Float[Tensor, "*batch S 1"], scale: float = 0.1, empty_weight: float = 1.0
 ) -> Float[Tensor, ""]:
     """Negative log of a two-Laplacian mixture with modes at 0 and 1 (paper eq. 18).
 
-    ``-log(e^{-|T|/scale} + e^{-|1-T|/scale})``, averaged over samples; evaluated with
-    logsumexp so it stays finite for any ``T``. Pushes the object transmittance to 0 or 1.
+    ``-log(e^{-|T|/scale} + w e^{-|1-T|/scale})`` with ``w = empty_weight``, averaged over
+    samples; evaluated with logsumexp so it stays finite for any ``T``. Pushes the object
+    transmittance to 0 or 1; ``w > 1`` prefers 1 (empty space), as the official code
+    (``w = 6``): then a wall across open water, which the image alone cannot rule out, costs.
     """
+    if empty_weight <= 0:
+        raise ValueError(f"empty_weight must be > 0, got {empty_weight}")
     t = transmittance.float()
-    logits = torch.stack([-t.abs() / scale, -(1.0 - t).abs() / scale], dim=0)
+    logits = torch.stack([-t.abs() / scale, math.log(empty_weight) - (1.0 - t).abs() / scale], dim=0)
     return -torch.logsumexp(logits, dim=0).mean()

@@ -1,13 +1,19 @@
-"""The medium MLP: ray direction -> veiling-light colour, attenuation and backscatter densities.
+"""The medium: veiling-light colour, attenuation and backscatter densities of the water.
 
-The medium is constant along a ray (paper sec. 3.1), so this field is evaluated once per
-ray, never per sample.
+The medium is constant along a ray (paper sec. 3.1), so it is evaluated once per ray, never
+per sample. Three variants share one interface, ``medium(directions) -> MediumOutputs``:
+
+* :class:`MediumField`, the paper's MLP of the ray direction (``per-ray``): water whose
+  colour and turbidity vary with the viewing direction, e.g. towards the surface;
+* :class:`SceneMedium`, nine learned constants (``per-scene``): one homogeneous water
+  body, which is what the SeaThru image formation model assumes;
+* :class:`FixedMedium`, given constants (an oracle for experiments: the true medium).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal
+from typing import Literal, Sequence
 
 import torch
 from jaxtyping import Float
@@ -58,8 +64,7 @@ class MediumField(nn.Module):
             implementation=implementation,
         )
         # Start from a moderate medium rather than softplus(0) ~ 0.69 per scene unit.
-        inverse_softplus = float(torch.log(torch.expm1(torch.tensor(init_density))))
-        self.register_buffer("density_bias", torch.full((6,), inverse_softplus), persistent=False)
+        self.register_buffer("density_bias", torch.full((6,), inverse_softplus(init_density)), persistent=False)
         self.activation = nn.Softplus()
 
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
@@ -71,4 +76,59 @@ class MediumField(nn.Module):
             rgb=torch.sigmoid(raw[..., :3]),
             sigma_attn=densities[..., :3],
             sigma_bs=densities[..., 3:],
+        )
+
+
+def inverse_softplus(value: float) -> float:
+    """``x`` with ``softplus(x) = value`` (``value > 0``)."""
+    return float(torch.log(torch.expm1(torch.tensor(float(value), dtype=torch.float64))))
+
+
+def _expand(values: Tensor, directions: Tensor) -> Tensor:
+    return values.to(directions.device).expand(*directions.shape[:-1], 3)
+
+
+class SceneMedium(nn.Module):
+    """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
+    learned constants, the same for every ray (sigmoid and softplus, as the MLP's heads).
+
+    Cheaper than :class:`MediumField` and without its freedom to give every ray its own
+    water, which on a homogeneous scene lets the medium explain scene content per ray.
+    """
+
+    def __init__(self, init_density: float = 0.5, init_rgb: float = 0.5) -> None:
+        super().__init__()
+        rgb_logit = float(torch.logit(torch.tensor(float(init_rgb))))
+        self.rgb_logit = nn.Parameter(torch.full((3,), rgb_logit))
+        self.density_raw = nn.Parameter(torch.full((6,), inverse_softplus(init_density)))
+
+    def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
+        densities = nn.functional.softplus(self.density_raw.float())
+        return MediumOutputs(
+            rgb=_expand(torch.sigmoid(self.rgb_logit.float()), directions),
+            sigma_attn=_expand(densities[:3], directions),
+            sigma_bs=_expand(densities[3:], directions),
+        )
+
+
+class FixedMedium(nn.Module):
+    """A given homogeneous medium (no parameters): the oracle of an experiment.
+
+    ``sigma_attn`` and ``sigma_bs`` per scene unit, ``rgb`` linear; three values each.
+    """
+
+    def __init__(self, rgb: Sequence[float], sigma_attn: Sequence[float], sigma_bs: Sequence[float]) -> None:
+        super().__init__()
+        for name, values in (("rgb", rgb), ("sigma_attn", sigma_attn), ("sigma_bs", sigma_bs)):
+            if len(values) != 3:
+                raise ValueError(f"FixedMedium: {name} needs 3 values, got {list(values)}")
+        self.register_buffer("rgb", torch.tensor([float(v) for v in rgb]), persistent=False)
+        self.register_buffer("sigma_attn", torch.tensor([float(v) for v in sigma_attn]), persistent=False)
+        self.register_buffer("sigma_bs", torch.tensor([float(v) for v in sigma_bs]), persistent=False)
+
+    def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
+        return MediumOutputs(
+            rgb=_expand(self.rgb, directions),
+            sigma_attn=_expand(self.sigma_attn, directions),
+            sigma_bs=_expand(self.sigma_bs, directions),
         )

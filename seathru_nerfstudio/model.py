@@ -4,8 +4,10 @@ plus a per-ray medium field and the scattering renderer of :mod:`seathru_nerfstu
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass, field
-from typing import Dict, List, Literal, Tuple, Type
+from pathlib import Path
+from typing import Dict, List, Literal, Optional, Tuple, Type
 from unittest import mock
 
 import torch
@@ -15,14 +17,16 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
 from nerfstudio.field_components.field_heads import FieldHeadNames
-from nerfstudio.model_components.losses import scale_gradients_by_distance_squared
+from nerfstudio.model_components.losses import DepthLossType, depth_loss, scale_gradients_by_distance_squared
 from nerfstudio.model_components.scene_colliders import NearFarCollider
 from nerfstudio.models.nerfacto import NerfactoModel, NerfactoModelConfig
 from nerfstudio.utils import colormaps
+from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio import metrics, viewer
+from seathru_nerfstudio import diagnostics, metrics, viewer
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
-from seathru_nerfstudio.medium_field import MediumField, MediumOutputs
+from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
+from seathru_nerfstudio.medium_field import FixedMedium, MediumField, MediumOutputs, SceneMedium
 from seathru_nerfstudio.rendering import Quadrature, render_seathru
 
 IMAGE_OUTPUTS = ("rgb", "clean", "direct", "backscatter")
@@ -44,6 +48,25 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Spherical-harmonic levels of the medium's direction encoding."""
     medium_init_density: float = 0.5
     """Initial sigma_attn and sigma_bs, per scene unit."""
+    medium_scope: Literal["ray", "scene"] = "ray"
+    """``ray``: the paper's MLP of the ray direction (water that changes with the viewing
+    direction). ``scene``: one homogeneous water body, nine learned constants."""
+    medium_oracle: Optional[Path] = None
+    """Diagnostic: a ``medium.json`` (``beta_D``, ``beta_B`` in 1/world unit, ``B_inf``, as
+    ``seathru-synth`` writes) whose medium is held fixed; only the object field learns."""
+    object_view_dependent: bool = True
+    """Object colour depends on the view direction (nerfacto). Off: Lambertian colour, as
+    the official SeaThru-NeRF; then a view-dependent look must come from the medium."""
+    depth_loss_mult: float = 0.0
+    """Weight of nerfacto's DS-NeRF depth loss; 0: off. Its source is ``depth_source``."""
+    depth_source: Literal["sfm", "ground-truth"] = "sfm"
+    """``sfm``: the dataset's depth images (nerfstudio's ``depth_file_path``; sparse SfM
+    depths, 0 where unknown). ``ground-truth``: diagnostic, the synthetic scenes' true range
+    (dense), and zero object opacity where the truth is open water."""
+    depth_sigma: float = 0.02
+    """Spread of the depth loss, in world units (metres)."""
+    diagnostics_every: int = 100
+    """Print one line of decomposition diagnostics every this many steps; 0: never."""
     medium_model: Literal["final", "basic"] = "final"
     """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
     for both (eqs. 11-13), for the ablation."""
@@ -62,6 +85,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Weight of the binary prior on the object transmittance (lambda in the paper)."""
     binary_prior_scale: float = 0.1
     """Scale of the two Laplacians of the binary prior."""
+    binary_prior_empty_weight: float = 1.0
+    """Weight of the prior's mode at ``T = 1`` (empty space) against ``T = 0``: 1 is
+    symmetric; the official code uses 6, AkerBP's port 100."""
     # Paper-faithful departures from nerfacto's defaults: no distortion loss, no per-image
     # appearance code (it could explain the water away), no pose refinement.
     distortion_loss_mult: float = 0.0
@@ -79,14 +105,12 @@ class SeathruModel(NerfactoModel):
         # nerfacto builds LPIPS here, which downloads AlexNet: build it only if it is on disk.
         with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", metrics.make_lpips):
             super().populate_modules()
-        self.medium_field = MediumField(
-            num_layers=self.config.medium_num_layers,
-            hidden_dim=self.config.medium_hidden_dim,
-            sh_levels=self.config.medium_sh_levels,
-            init_density=self.config.medium_init_density,
-            implementation=self.config.implementation,
-        )
         metadata = self.kwargs.get("metadata") or {}
+        self.world_scale = float(metadata.get(SCALE_KEY, 1.0))
+        """Scene units per world unit (metre): a density per scene unit times this is per metre."""
+        self.medium_field = self._build_medium()
+        if not self.config.object_view_dependent:
+            self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
         if "near_plane" in metadata:
             # The scene's own near bound (seathru-data: poses_bounds.npy), with a margin; the
             # renderer adds the water in front of it in closed form, so nothing is lost.
@@ -95,6 +119,25 @@ class SeathruModel(NerfactoModel):
             )
         # Viewer controls and display transform (no parameters; never applied in training).
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
+
+    def _build_medium(self):
+        if self.config.medium_oracle is not None:
+            truth = json.loads(Path(self.config.medium_oracle).read_text())
+            # 1/world unit -> 1/scene unit
+            return FixedMedium(
+                rgb=truth["B_inf"],
+                sigma_attn=[b / self.world_scale for b in truth["beta_D"]],
+                sigma_bs=[b / self.world_scale for b in truth["beta_B"]],
+            )
+        if self.config.medium_scope == "scene":
+            return SceneMedium(init_density=self.config.medium_init_density)
+        return MediumField(
+            num_layers=self.config.medium_num_layers,
+            hidden_dim=self.config.medium_hidden_dim,
+            sh_levels=self.config.medium_sh_levels,
+            init_density=self.config.medium_init_density,
+            implementation=self.config.implementation,
+        )
 
     @property
     def medium_ramp(self) -> float:
@@ -111,6 +154,15 @@ class SeathruModel(NerfactoModel):
     ) -> List[TrainingCallback]:
         callbacks = super().get_training_callbacks(training_callback_attributes)
 
+        if self.config.diagnostics_every > 0:
+            callbacks.append(
+                TrainingCallback(
+                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    update_every_num_iters=self.config.diagnostics_every,
+                    func=self._print_diagnostics,
+                )
+            )
+
         def set_step(step: int) -> None:
             self._medium_step = step
 
@@ -123,9 +175,16 @@ class SeathruModel(NerfactoModel):
         )
         return callbacks
 
+    def _print_diagnostics(self, step: int) -> None:
+        values = getattr(self, "_last_diagnostics", None)
+        if values:
+            CONSOLE.print(f"[dim]seathru step {step}:[/] {diagnostics.format_line(values)}")
+
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         param_groups = super().get_param_groups()
-        param_groups["fields"] = param_groups["fields"] + list(self.medium_field.parameters())
+        medium = list(self.medium_field.parameters())
+        if medium:  # an oracle medium has none
+            param_groups["medium"] = medium
         return param_groups
 
     def get_outputs(self, ray_bundle: RayBundle):
@@ -171,6 +230,8 @@ class SeathruModel(NerfactoModel):
             outputs["weights_list"] = weights_list
             outputs["ray_samples_list"] = ray_samples_list
             outputs["transmittance"] = render.transmittance
+            if "directions_norm" in (ray_bundle.metadata or {}):
+                outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
         for i in range(self.config.num_proposal_iterations):
             outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
         return outputs
@@ -178,6 +239,14 @@ class SeathruModel(NerfactoModel):
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
         # Whole-image renders outside training and evaluation are for display (viewer, ns-render).
         return viewer.render_camera(self, camera_ray_bundle, super().get_outputs_for_camera_ray_bundle)
+
+    def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
+        metrics_dict = super().get_metrics_dict(outputs, batch)
+        if self.training:
+            values = diagnostics.decomposition(outputs, batch.get("gt_depth"), self.world_scale)
+            metrics_dict.update(values)  # TensorBoard: "Train Metrics Dict/..."
+            self._last_diagnostics = values
+        return metrics_dict
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None):
         # nerfacto's terms (interlevel, distortion, camera), then the paper's colour loss.
@@ -187,9 +256,43 @@ class SeathruModel(NerfactoModel):
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=self.config.rawnerf_eps)
         if self.training and self.config.binary_prior_mult > 0:
             loss_dict["binary_prior_loss"] = self.config.binary_prior_mult * binary_transmittance_loss(
-                outputs["transmittance"], scale=self.config.binary_prior_scale
+                outputs["transmittance"],
+                scale=self.config.binary_prior_scale,
+                empty_weight=self.config.binary_prior_empty_weight,
             )
+        if self.training and self.config.depth_loss_mult > 0:
+            loss_dict["depth_loss"] = self.config.depth_loss_mult * self._depth_loss(outputs, batch)
         return loss_dict
+
+    def _depth_loss(self, outputs, batch) -> torch.Tensor:
+        """nerfacto's DS-NeRF depth loss on the object weights, where a depth is known."""
+        if self.config.depth_source == "ground-truth":
+            if "gt_depth" not in batch:
+                raise KeyError("depth_source='ground-truth' needs a dataset with ground_truth/depth (seathru-synth)")
+            truth = batch["gt_depth"].to(self.device)  # range, scene units; inf = open water
+            is_euclidean = True
+        else:
+            if "depth_image" not in batch:
+                raise KeyError("depth_source='sfm' needs depth images (depth_file_path in transforms.json)")
+            truth = batch["depth_image"].to(self.device)  # z-depth, scene units; 0 = unknown
+            is_euclidean = False
+        hit = torch.isfinite(truth)
+        loss = depth_loss(
+            weights=outputs["weights_list"][-1],
+            ray_samples=outputs["ray_samples_list"][-1],
+            termination_depth=torch.where(hit, truth, torch.zeros_like(truth)),
+            predicted_depth=outputs["expected_depth"],
+            # nerfstudio's DS-NeRF loss divides by 2 * sigma: it takes the variance.
+            sigma=torch.tensor((self.config.depth_sigma * self.world_scale) ** 2, device=self.device),
+            directions_norm=outputs.get("directions_norm", torch.ones_like(truth)),
+            is_euclidean=is_euclidean,
+            depth_loss_type=DepthLossType.DS_NERF,
+        )
+        if not is_euclidean:
+            return loss
+        # Open water: nothing to hit, so no object opacity.
+        open_water = (~hit).float()
+        return loss + torch.sum(outputs["accumulation"] * open_water) / max(1.0, float(open_water.numel()))
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
@@ -234,6 +337,23 @@ class SeathruModel(NerfactoModel):
             "accumulation": colormaps.apply_colormap(outputs["accumulation"]),
         }
         return metrics_dict, images_dict
+
+
+class FixedDirectionEncoding(torch.nn.Module):
+    """An encoding that always encodes one fixed direction: a colour head fed by it is
+    view-independent (Lambertian), with nerfacto's field left as it is."""
+
+    def __init__(self, encoding: torch.nn.Module) -> None:
+        super().__init__()
+        self.encoding = encoding
+
+    def get_out_dim(self) -> int:
+        return self.encoding.get_out_dim()
+
+    def forward(self, directions: torch.Tensor) -> torch.Tensor:
+        fixed = torch.zeros_like(directions[:1])
+        fixed[..., 2] = 1.0
+        return self.encoding(fixed).expand(directions.shape[0], -1)
 
 
 def _nchw(image: torch.Tensor) -> torch.Tensor:

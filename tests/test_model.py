@@ -134,7 +134,7 @@ def test_loss_dict_has_the_paper_terms_and_finite_gradients(model):
     medium_grads = [p.grad for p in model.medium_field.parameters()]
     assert all(g is not None and torch.isfinite(g).all() for g in medium_grads)
     assert any(g.abs().sum() > 0 for g in medium_grads)
-    assert all(p in set(model.get_param_groups()["fields"]) for p in model.medium_field.parameters())
+    assert all(p in set(model.get_param_groups()["medium"]) for p in model.medium_field.parameters())
     model.zero_grad()
 
 

@@ -53,7 +53,7 @@ def water_exact(tmp_path_factory) -> Path:
 
 
 def test_layout_shapes_and_dtypes(water: Path):
-    assert sorted(p.name for p in water.iterdir()) == ["ground_truth", "images", "transforms.json"]
+    assert sorted(p.name for p in water.iterdir()) == ["depth", "ground_truth", "images", "transforms.json"]
     for i in range(N):
         I, J, z = _load(water, i)
         assert I.shape == J.shape == (H, W, 3)
@@ -284,3 +284,30 @@ def test_cli(tmp_path: Path):
         res = subprocess.run(bad, capture_output=True, text=True, timeout=120)
         assert res.returncode != 0, bad
         assert not (tmp_path / "x").exists() and not (tmp_path / "y").exists()
+
+
+def test_sfm_depth_is_sparse_true_z_depth_on_textured_object_pixels(water_exact: Path):
+    """depth/*.png hold z-depth in mm at a few textured pixels, 0 elsewhere, never in open water."""
+    frames = json.loads((water_exact / "transforms.json").read_text())["frames"]
+    K = json.loads((water_exact / "transforms.json").read_text())
+    for i, frame in enumerate(frames):
+        sparse = cv2.imread(str(water_exact / frame["depth_file_path"]), cv2.IMREAD_ANYDEPTH)
+        _, _, z = _load(water_exact, i)
+        known = sparse > 0
+        assert 0 < known.sum() <= SynthConfig(output_dir=Path(".")).sfm_points_per_view
+        assert np.isfinite(z[known]).all(), "an SfM point in open water"
+        v, u = np.nonzero(known)
+        norm = np.sqrt(((u + 0.5 - K["cx"]) / K["fl_x"]) ** 2 + ((v + 0.5 - K["cy"]) / K["fl_y"]) ** 2 + 1.0)
+        np.testing.assert_allclose(sparse[known] / 1000.0, z[known] / norm, atol=6e-4)
+
+
+def test_turbid_preset_is_deeper_greener_and_follows_the_model(tmp_path: Path):
+    out = generate(SynthConfig(output_dir=tmp_path / "turbid", preset="turbid", width=W, height=H, num_views=2, supersample=1))
+    med = json.loads((out / "ground_truth" / "medium.json").read_text())
+    assert med["beta_D"] == PRESETS["turbid"]["beta_D"]
+    I, J, z = _load(out, 0)
+    hit = np.isfinite(z)
+    assert z[hit].min() < 1.6 and z[hit].max() > 6.0, (z[hit].min(), z[hit].max())
+    assert np.argmax(PRESETS["turbid"]["B_inf"]) == 1  # green water, unlike water's blue
+    expected = apply_medium(J, z, med["beta_D"], med["beta_B"], med["B_inf"])
+    np.testing.assert_allclose(I, expected, atol=2e-5)

@@ -104,6 +104,9 @@ def view_metrics(
         object_mask = torch.isfinite(gt_m)
         result["depth_abs_rel"] = metrics.depth_abs_rel(pred_m, gt_m)
         result["depth_abs_rel_far"] = metrics.depth_abs_rel(pred_m, gt_m, metrics.far_third_mask(gt_m))
+        if "accumulation" in outputs and bool((~object_mask).any()):
+            # open water must stay empty: a wall of water colour there is a broken decomposition
+            result["open_water_accumulation"] = float(outputs["accumulation"].float()[~object_mask].mean())
     gt_clean = batch.get("gt_clean")
     if gt_clean is not None:
         gt_clean = gt_clean[..., :3].float()

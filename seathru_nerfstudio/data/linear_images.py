@@ -20,6 +20,7 @@ from jaxtyping import Float
 from torch import Tensor
 
 from nerfstudio.data.datasets.base_dataset import InputDataset
+from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 
 GROUND_TRUTH_DIR = "ground_truth"
 
@@ -74,7 +75,9 @@ class LinearImageDataset(InputDataset):
 
     Batches gain ``gt_clean`` (linear RGB) and ``gt_depth`` (range from the camera centre,
     in scene units: world units times the dataparser scale; ``inf`` for open water) when the
-    dataset has a ``ground_truth/`` folder beside its images.
+    dataset has a ``ground_truth/`` folder beside its images, and ``depth_image`` (z-depth in
+    scene units, 0 = unknown; e.g. sparse SfM depths) when its frames have nerfstudio's
+    ``depth_file_path``, read as nerfstudio's ``DepthDataset`` reads them.
     """
 
     def get_image_float32(self, image_idx: int) -> Float[Tensor, "image_height image_width num_channels"]:
@@ -105,4 +108,14 @@ class LinearImageDataset(InputDataset):
                 depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
             scale = float(self._dataparser_outputs.dataparser_scale)
             metadata["gt_depth"] = torch.from_numpy(depth * scale)[..., None]
+        depth_filenames = self._dataparser_outputs.metadata.get("depth_filenames")
+        if depth_filenames:
+            camera = self._dataparser_outputs.cameras[data["image_idx"]]
+            metadata["depth_image"] = get_depth_image_from_path(
+                filepath=Path(depth_filenames[data["image_idx"]]),
+                height=int(camera.height),
+                width=int(camera.width),
+                scale_factor=float(self._dataparser_outputs.metadata["depth_unit_scale_factor"])
+                * float(self._dataparser_outputs.dataparser_scale),
+            )
         return metadata

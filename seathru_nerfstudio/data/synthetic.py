@@ -54,15 +54,31 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 
 CONSOLE = Console(stderr=True)
 
-PresetName = Literal["water", "fog", "none"]
+PresetName = Literal["water", "turbid", "fog", "none"]
 
 #: Medium presets: attenuation beta_D (1/m), backscatter beta_B (1/m), veiling light B_inf
 #: (linear RGB). ``water`` is the paper's underwater *Fern* simulation (Sec. 5).
 PRESETS: Dict[str, Dict[str, List[float]]] = {
     "water": {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]},
+    "turbid": {"beta_D": [0.62, 0.38, 0.46], "beta_B": [0.48, 0.32, 0.38], "B_inf": [0.04, 0.26, 0.18]},
     "fog": {"beta_D": [1.2, 1.2, 1.2], "beta_B": [1.2, 1.2, 1.2], "B_inf": [0.6, 0.6, 0.6]},
     "none": {"beta_D": [0.0, 0.0, 0.0], "beta_B": [0.0, 0.0, 0.0], "B_inf": [0.0, 0.0, 0.0]},
 }
+
+@dataclass(frozen=True)
+class Geometry:
+    """How a preset's scene is laid out, relative to the base scene (objects 0.76-2.6 m away)."""
+
+    scene_scale: float = 1.0
+    """Every primitive's position, size and texture scaled by this about the rig's origin."""
+    near_scale: float = 1.0
+    """The same for the nearest sphere, so that a scaled scene still has something close."""
+    rig_scale: float = 1.0
+    """Camera rig extent scaled by this."""
+
+
+#: ``turbid``: green coastal water, a scene 3.5x deeper (objects about 1 to 8 m away).
+GEOMETRY: Dict[str, Geometry] = {"turbid": Geometry(scene_scale=3.5, near_scale=1.4, rig_scale=1.5)}
 
 HOLDOUT_EVERY = 5
 """Views 0, 5, 10, ... are held out for val/test."""
@@ -77,7 +93,8 @@ class SynthConfig:
     output_dir: Path
     """Folder to create (must not exist or be empty, unless --overwrite)."""
     preset: PresetName = "water"
-    """Medium: 'water' (paper's Fern simulation), 'fog' (grey, beta=1.2/m) or 'none' (clear)."""
+    """Medium: 'water' (paper's Fern simulation), 'turbid' (green coastal water, objects ~1-8 m),
+    'fog' (grey, beta=1.2/m) or 'none' (clear)."""
     seed: int = 0
     """Random seed for scene layout, textures and camera jitter; same seed = identical files."""
     width: int = 160
@@ -90,6 +107,10 @@ class SynthConfig:
     """Replace the output folder if it exists and is non-empty."""
     supersample: int = 2
     """Anti-aliasing: supersample^2 rays per pixel, medium applied per ray; 1 = off (exact model per pixel)."""
+    sfm_points_per_view: int = 300
+    """Sparse depth like structure-from-motion's: this many textured pixels per view get their
+    true z-depth in ``depth/`` (nerfstudio's ``depth_file_path``, 16-bit millimetres, 0 =
+    unknown); 0: none. Open water and flat texture have no SfM points, as in a real capture."""
 
 
 # ----------------------------------------------------------------------------------------------
@@ -250,13 +271,14 @@ class _Prim:
     plane: float = 0.0
     bounds: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
     top_amp: float = 0.0  # wall only: irregular top edge amplitude (m)
+    tex_scale: float = 1.0  # the texture is evaluated at p / tex_scale
     _top_lut: Optional[Tuple[np.ndarray, np.ndarray]] = None
 
     def wall_top(self, x: np.ndarray) -> np.ndarray:
         """Height (m) of the wall's irregular top edge at world x (piecewise linear, 2 mm knots)."""
         if self._top_lut is None:
             xs = np.linspace(self.bounds[0], self.bounds[1], int(round((self.bounds[1] - self.bounds[0]) / 0.002)) + 1)
-            q = np.stack([xs / 0.3, np.zeros_like(xs), np.zeros_like(xs)], 1)
+            q = np.stack([xs / (0.3 * self.tex_scale), np.zeros_like(xs), np.zeros_like(xs)], 1)
             bumps = _fbm(q, self.texture.salt + 77, 3).astype(np.float64) - 0.5
             self._top_lut = (xs, self.bounds[3] + 2.0 * self.top_amp * bumps)
         return np.interp(x, *self._top_lut)
@@ -360,7 +382,7 @@ class _Scene:
             m = np.flatnonzero(hidx == k)
             if len(m):
                 nrm[m] = prim.normal(p[m])
-                alb[m] = prim.texture.albedo(p[m])
+                alb[m] = prim.texture.albedo(p[m] / prim.tex_scale)
         # Lambertian + ambient, with hard shadows cast by the objects (not by the wall/ground).
         ndl = np.clip(nrm @ self.light_dir, 0.0, None)
         lit_idx = np.flatnonzero(ndl > 0)
@@ -410,9 +432,9 @@ GROUND_Y = -0.7
 WALL_TOP_Y = 0.22
 
 
-def _build_scene(rng: np.random.Generator) -> _Scene:
+def _build_scene(rng: np.random.Generator, geometry: Geometry = Geometry()) -> _Scene:
     """Scene in metres; cameras sit near z=0 looking towards -z. Wall at z=-1.85, ground at y=-0.7,
-    open water above the wall's irregular top edge (~0.22 m)."""
+    open water above the wall's irregular top edge (~0.22 m); all of it times ``geometry``'s scales."""
     salt = int(rng.integers(0, 2**31))
     tex = lambda k: _random_texture(rng, salt + 7919 * k)  # noqa: E731
     j = lambda s: rng.uniform(-s, s, size=3)  # noqa: E731
@@ -450,9 +472,29 @@ def _build_scene(rng: np.random.Generator) -> _Scene:
             rot=_rot_y(rng.uniform(0, 1.5)) @ _rot_x(rng.uniform(0, 1.5)),
         ),
     ]
+    for k, prim in enumerate(prims):
+        _scale_prim(prim, geometry.near_scale if k == NEAR_SPHERE else geometry.scene_scale)
     prims[0].wall_top(np.zeros(1))  # build the edge lookup table now (renders run in threads)
     light = np.array([-0.4, 0.8, 0.45])
     return _Scene(prims=prims, light_dir=light / np.linalg.norm(light))
+
+
+NEAR_SPHERE = 2
+"""Index of the nearest sphere in :func:`_build_scene`'s list."""
+
+
+def _scale_prim(prim: _Prim, factor: float) -> None:
+    """Scale a primitive about the origin (the rig's centre): it looks the same from there,
+    ``factor`` times farther away."""
+    if factor == 1.0:
+        return
+    prim.centre = prim.centre * factor
+    prim.radius *= factor
+    prim.half = prim.half * factor
+    prim.plane *= factor
+    prim.bounds = tuple(b * factor for b in prim.bounds)
+    prim.top_amp *= factor
+    prim.tex_scale *= factor
 
 
 # ----------------------------------------------------------------------------------------------
@@ -477,16 +519,17 @@ def _look_at(centre: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
     return c2w
 
 
-def _make_poses(rng: np.random.Generator, num_views: int) -> np.ndarray:
+def _make_poses(rng: np.random.Generator, num_views: int, geometry: Geometry = Geometry()) -> np.ndarray:
     """Forward-facing rig: sunflower pattern filling an ellipse, jittered, small rotations."""
     golden = math.pi * (3.0 - math.sqrt(5.0))
     poses = []
     for k in range(num_views):
         r = math.sqrt((k + 0.5) / num_views)
         a = k * golden
-        centre = np.array([RIG_HALF_EXTENT[0] * r * math.cos(a), RIG_HALF_EXTENT[1] * r * math.sin(a), 0.0])
+        rig = geometry.rig_scale
+        centre = np.array([rig * RIG_HALF_EXTENT[0] * r * math.cos(a), rig * RIG_HALF_EXTENT[1] * r * math.sin(a), 0.0])
         centre += rng.uniform(-0.02, 0.02, size=3)
-        target = LOOK_AT + rng.uniform(-0.06, 0.06, size=3)
+        target = LOOK_AT * geometry.scene_scale + rng.uniform(-0.06, 0.06, size=3)
         roll = math.radians(rng.uniform(-2.0, 2.0))
         poses.append(_look_at(centre, target, roll))
     return np.stack(poses)
@@ -522,6 +565,37 @@ def apply_medium(
     direct = np.where(finite, J * np.exp(-np.asarray(beta_D) * zf), 0.0)
     back_frac = np.where(finite, -np.expm1(-np.asarray(beta_B) * zf), 1.0)
     return direct + np.asarray(B_inf) * back_frac
+
+
+def sfm_like_depth(
+    clean: np.ndarray, range_m: np.ndarray, K: Dict[str, float], num_points: int, seed: Tuple[int, int]
+) -> np.ndarray:
+    """Sparse z-depth in millimetres (uint16, 0 = unknown) where structure-from-motion would
+    have triangulated points: ``num_points`` pixels drawn among the most textured quarter of
+    each view's object pixels (strong gradients of the clean image), none in open water.
+
+    nerfstudio's depth images hold z-depth (along the optical axis), not range:
+    ``z = range / |d_cam|`` with ``d_cam = ((u - cx)/fx, (v - cy)/fy, 1)``.
+    """
+    h, w = range_m.shape
+    grey = clean.mean(axis=-1)
+    gy, gx = np.gradient(grey)
+    texture = np.hypot(gx, gy)
+    hit = np.isfinite(range_m)
+    candidates = np.flatnonzero(hit.ravel() & (texture.ravel() >= np.quantile(texture[hit], 0.75)))
+    rng = np.random.default_rng(list(seed))
+    chosen = rng.choice(candidates, size=min(num_points, len(candidates)), replace=False)
+    v, u = np.divmod(chosen, w)
+    norm = np.sqrt(((u + 0.5 - K["cx"]) / K["fl_x"]) ** 2 + ((v + 0.5 - K["cy"]) / K["fl_y"]) ** 2 + 1.0)
+    depth_mm = np.zeros((h, w), dtype=np.uint16)
+    depth_mm[v, u] = np.clip(np.round(range_m[v, u] / norm * 1000.0), 1, 65535).astype(np.uint16)
+    return depth_mm
+
+
+def write_png16_gray(path: Path, image: np.ndarray) -> None:
+    """Write a uint16 single-channel PNG."""
+    if not cv2.imwrite(str(path), np.ascontiguousarray(image.astype(np.uint16))):
+        raise OSError(f"could not write {path}")
 
 
 def _to_u16(img: np.ndarray) -> np.ndarray:
@@ -604,8 +678,9 @@ def generate(config: SynthConfig) -> Path:
     medium = {k: np.asarray(v, dtype=np.float64) for k, v in PRESETS[config.preset].items()}
     rng_scene = np.random.default_rng([config.seed, 1])
     rng_cams = np.random.default_rng([config.seed, 2])
-    scene = _build_scene(rng_scene)
-    poses = _make_poses(rng_cams, n_views)
+    geometry = GEOMETRY.get(config.preset, Geometry())
+    scene = _build_scene(rng_scene, geometry)
+    poses = _make_poses(rng_cams, n_views, geometry)
     K = _intrinsics(w, h)
 
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -614,6 +689,8 @@ def generate(config: SynthConfig) -> Path:
         (tmp / "images").mkdir()
         (tmp / "ground_truth" / "clean").mkdir(parents=True)
         (tmp / "ground_truth" / "depth").mkdir(parents=True)
+        if config.sfm_points_per_view > 0:
+            (tmp / "depth").mkdir()
         frames = []
         names = []
         n_open = 0
@@ -638,7 +715,12 @@ def generate(config: SynthConfig) -> Path:
                     _write_png16(tmp / "ground_truth" / "clean" / f"{stem}.png", J)
                     np.save(tmp / "ground_truth" / "depth" / f"{stem}.npy", depth)
                     n_open += int(np.sum(~np.isfinite(depth)))
-                    frames.append({"file_path": name, "transform_matrix": poses[i].tolist()})
+                    frame = {"file_path": name, "transform_matrix": poses[i].tolist()}
+                    if config.sfm_points_per_view > 0:
+                        frame["depth_file_path"] = f"depth/{stem}.png"
+                        sparse = sfm_like_depth(J, depth, K, config.sfm_points_per_view, seed=(config.seed, i))
+                        write_png16_gray(tmp / frame["depth_file_path"], sparse)
+                    frames.append(frame)
                     names.append(name)
                     progress.advance(task)
 
@@ -671,6 +753,9 @@ def generate(config: SynthConfig) -> Path:
             "depth": "ground_truth/depth/*.npy: float32 range from camera centre along the pixel-centre ray, "
             "metres; inf = open water (I = B_inf, J = 0)",
             "images": "16-bit PNG, RGB order, value/65535 = linear radiance",
+            "sfm_depth": "depth/*.png: sparse z-depth in millimetres at textured pixels (0 = unknown), "
+            "like structure-from-motion points; nerfstudio's depth_file_path",
+            "geometry": vars(geometry),
             "pose_convention": "nerfstudio/OpenGL camera-to-world (camera looks along -z, +y up)",
             "width": w,
             "height": h,
