@@ -1,0 +1,340 @@
+"""nerfstudio's ``Trainer`` made to survive long runs: a non-finite guard and atomic checkpoints.
+
+Why: a run of the paper's size takes days. A single NaN (fp16 overflow, a bad batch) handed to
+Adam poisons every parameter and the moments for good, and the next periodic checkpoint then
+overwrites the last good one with NaNs. A kill (power cut, pre-empted cloud GPU, OOM killer)
+in the middle of ``torch.save`` leaves a truncated ``step-*.ckpt`` that nerfstudio's
+``--load-dir`` picks as the newest and fails to load. This module fixes both by subclassing
+nerfstudio, without changing its training loop or its checkpoint format:
+
+* **Non-finite guard.** Every optimiser step is checked before it is taken: the total loss (seen
+  as it passes through the gradient scaler) and the gradients of every parameter group that is
+  about to step. If anything is NaN or inf, no optimiser and no scheduler steps (the parameters,
+  Adam's moments and the learning rates stay exactly as after the last good step) and one warning
+  names the step, the non-finite loss terms and parameter groups. Under ``torch.distributed``
+  the decision is agreed between all ranks, so they skip together and stay identical. After
+  ``guard.max_consecutive_bad_steps`` bad steps in a row training stops with
+  :class:`NonFiniteTrainingError`; the last good checkpoint is left in place.
+* **Checkpoints.** A checkpoint is written by nerfstudio's own ``save_checkpoint`` into a staging
+  folder next to the checkpoint folder, flushed to disk, then moved into place with
+  ``os.replace`` (atomic on POSIX and Windows): the checkpoint folder only ever holds complete
+  files. A state with any non-finite tensor is never written.
+* **Resume.** ``--load-dir``/``--load-checkpoint`` are nerfstudio's; we add a clear error when
+  the folder holds no checkpoint, and (``total_iterations_on_resume``, on by default) a resumed
+  run stops at ``max_num_iterations`` in total, where the killed run would have stopped, instead
+  of training ``max_num_iterations`` more.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Dict, Iterable, List, Optional, Type
+
+import torch
+import torch.distributed as dist
+
+from nerfstudio.configs.base_config import PrintableConfig
+from nerfstudio.engine.optimizers import Optimizers
+from nerfstudio.engine.trainer import TRAIN_INTERATION_OUTPUT, Trainer, TrainerConfig
+from nerfstudio.utils import comms
+from nerfstudio.utils.rich_utils import CONSOLE
+
+CHECKPOINT_GLOB = "step-*.ckpt"
+
+
+class NonFiniteTrainingError(RuntimeError):
+    """Training produced non-finite values it cannot recover from (see the message)."""
+
+
+@dataclass
+class NonFiniteGuardConfig(PrintableConfig):
+    """The non-finite guard (``--guard.enabled``, ``--guard.max-consecutive-bad-steps``)."""
+
+    enabled: bool = True
+    """Skip optimiser steps whose loss or gradients are NaN/inf. Off: nerfstudio's plain behaviour."""
+    max_consecutive_bad_steps: int = 20
+    """Stop training after this many skipped steps in a row: the run has diverged, not hiccupped."""
+
+
+@dataclass
+class SeathruTrainerConfig(TrainerConfig):
+    """nerfstudio's ``TrainerConfig`` with the non-finite guard and crash-safe checkpoints."""
+
+    _target: Type = field(default_factory=lambda: SeathruTrainer)
+    guard: NonFiniteGuardConfig = field(default_factory=NonFiniteGuardConfig)
+    """Non-finite loss/gradient guard."""
+    total_iterations_on_resume: bool = True
+    """When resuming (--load-dir/--load-checkpoint), stop at max_num_iterations in total, where the
+    interrupted run would have stopped. False: nerfstudio's behaviour, max_num_iterations more."""
+
+
+def _nonfinite_tensors(named: Iterable) -> List[str]:
+    """Names of the floating-point tensors in ``named`` ((name, value) pairs, nested dicts and
+    lists walked) that hold a NaN or an inf."""
+    bad: List[str] = []
+    stack = list(named)
+    while stack:
+        name, value = stack.pop()
+        if isinstance(value, torch.Tensor):
+            if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                bad.append(name)
+        elif isinstance(value, dict):
+            stack.extend((f"{name}.{k}", v) for k, v in value.items())
+        elif isinstance(value, (list, tuple)):
+            stack.extend((f"{name}[{i}]", v) for i, v in enumerate(value))
+        elif isinstance(value, float) and not torch.isfinite(torch.tensor(value)):
+            bad.append(name)
+    return sorted(bad)
+
+
+class NonFiniteGuard:
+    """The state of the guard for one trainer: what the current step saw, and the bad-step run.
+
+    The checks are split across the two objects nerfstudio's ``train_iteration`` hands the loss
+    and the gradients to before the optimiser steps (:class:`GuardedGradScaler` and
+    :class:`GuardedOptimizers`), so nerfstudio's training step itself is used unchanged."""
+
+    def __init__(self, config: NonFiniteGuardConfig, world_size: int = 1):
+        if config.max_consecutive_bad_steps < 1:
+            raise ValueError(f"guard.max_consecutive_bad_steps must be >= 1, got {config.max_consecutive_bad_steps}")
+        self.config = config
+        self.world_size = world_size
+        self.consecutive_bad_steps = 0
+        self.skipped_steps: List[int] = []
+        self._loss_finite: Optional[torch.Tensor] = None
+        self._bad_groups: List[str] = []
+        self._decided = False
+        self.skip = False
+        self._only_elsewhere = False
+
+    def start_step(self) -> None:
+        self._loss_finite = None
+        self._bad_groups = []
+        self._decided = False
+        self.skip = False
+        self._only_elsewhere = False
+
+    def record_loss(self, loss: torch.Tensor) -> None:
+        """Called with the total loss before backward (no host sync here)."""
+        self._loss_finite = torch.isfinite(loss.detach()).all()
+
+    def decide(self, parameters: Dict[str, List[torch.nn.Parameter]], groups: List[str]) -> bool:
+        """Whether the optimiser step of ``groups`` must be skipped. One host sync, and under
+        ``torch.distributed`` one all-reduce, so every rank takes the same decision."""
+        names = [g for g in groups if any(p.grad is not None for p in parameters[g])]
+        flags = [
+            torch.stack([torch.isfinite(p.grad).all() for p in parameters[g] if p.grad is not None]).all()
+            for g in names
+        ]
+        if self._loss_finite is not None:
+            flags.append(self._loss_finite.to(flags[0].device) if flags else self._loss_finite)
+        if not flags:
+            self._decided = True
+            return False
+        local = torch.stack(flags).to(torch.int32)
+        combined = local
+        if self.world_size > 1 and dist.is_available() and dist.is_initialized():
+            combined = local.clone()
+            dist.all_reduce(combined, op=dist.ReduceOp.MIN)
+        local_ok, combined_ok = local.tolist(), combined.tolist()
+        self._bad_groups = [g for g, ok in zip(names, local_ok) if not ok]
+        self.skip = not all(combined_ok)
+        self._only_elsewhere = self.skip and all(local_ok)
+        self._decided = True
+        return self.skip
+
+    def finish_step(self, step: int, loss_dict: Dict[str, torch.Tensor], last_checkpoint: Optional[Path]) -> None:
+        """Warn about a skipped step and stop after too many in a row."""
+        if not self._decided and self._loss_finite is not None and not bool(self._loss_finite):
+            # no parameter group stepped this iteration (gradient accumulation): nothing was
+            # skipped, but a non-finite loss still counts toward the stop
+            self.skip = True
+        if not self.skip:
+            self.consecutive_bad_steps = 0
+            return
+        self.consecutive_bad_steps += 1
+        self.skipped_steps.append(step)
+        limit = self.config.max_consecutive_bad_steps
+        bad_losses = [k for k, v in loss_dict.items() if not bool(torch.isfinite(torch.as_tensor(v)).all())]
+        what = []
+        if bad_losses:
+            what.append("non-finite loss " + ", ".join(repr(k) for k in bad_losses))
+        if self._bad_groups:
+            what.append("non-finite gradients in parameter group " + ", ".join(repr(g) for g in self._bad_groups))
+        if self._only_elsewhere:
+            what.append("non-finite values on another rank")
+        if not what:
+            what.append("non-finite total loss")
+        rank = f"rank {comms.get_rank()}: " if self.world_size > 1 else ""
+        if what != ["non-finite values on another rank"] or comms.is_main_process():
+            CONSOLE.print(
+                f"[bold yellow]{rank}step {step}: optimiser step skipped, {'; '.join(what)} "
+                f"({self.consecutive_bad_steps}/{limit} bad steps in a row)"
+            )
+        if self.consecutive_bad_steps >= limit:
+            where = (
+                f"The last good checkpoint is {last_checkpoint}; resume from it with --load-dir {last_checkpoint.parent}"
+                if last_checkpoint is not None
+                else "No checkpoint was written before this happened"
+            )
+            raise NonFiniteTrainingError(
+                f"Training stopped at step {step}: {limit} optimiser steps in a row had a non-finite loss or "
+                f"gradient (last: {'; '.join(what)}). The parameters are those after the last good step. {where}. "
+                "Likely causes: a learning rate too high, fp16 overflow (try --mixed-precision False), or bad input data."
+            )
+
+
+class GuardedGradScaler(torch.amp.GradScaler):
+    """nerfstudio's gradient scaler, which also shows the guard the total loss before backward."""
+
+    def __init__(self, guard: NonFiniteGuard, **kwargs):
+        super().__init__("cuda", **kwargs)  # "cuda": the device nerfstudio's own scaler uses
+        self.guard = guard
+
+    def scale(self, outputs):  # type: ignore[override]
+        if isinstance(outputs, torch.Tensor):
+            self.guard.record_loss(outputs)
+        return super().scale(outputs)
+
+
+class GuardedOptimizers(Optimizers):
+    """nerfstudio's optimizers; the step (and the scheduler step) is skipped when the guard says so."""
+
+    def __init__(self, config: Dict, param_groups: Dict[str, List[torch.nn.Parameter]], guard: NonFiniteGuard):
+        super().__init__(config, param_groups)
+        self.guard = guard
+
+    def optimizer_scaler_step_some(self, grad_scaler, param_groups: List[str]) -> None:
+        if not self.guard.decide(self.parameters, param_groups):
+            return super().optimizer_scaler_step_some(grad_scaler, param_groups)
+        if grad_scaler.is_enabled():
+            # let the mixed-precision scaler see the overflow (it lowers its scale at update())
+            for group in param_groups:
+                if any(p.grad is not None for p in self.parameters[group]):
+                    grad_scaler.unscale_(self.optimizers[group])
+
+    def optimizer_scaler_step_all(self, grad_scaler) -> None:
+        self.optimizer_scaler_step_some(grad_scaler, list(self.optimizers.keys()))
+
+    def scheduler_step_all(self, step: int) -> None:
+        if not self.guard.skip:  # the learning rate follows the steps actually taken
+            super().scheduler_step_all(step)
+
+
+class SeathruTrainer(Trainer):
+    """nerfstudio's ``Trainer`` with the non-finite guard, atomic checkpoints and clear resume errors."""
+
+    config: SeathruTrainerConfig
+
+    def __init__(self, config: SeathruTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
+        super().__init__(config, local_rank, world_size)
+        guard_config = getattr(config, "guard", NonFiniteGuardConfig())
+        self.guard: Optional[NonFiniteGuard] = None
+        if guard_config.enabled:
+            self.guard = NonFiniteGuard(guard_config, world_size)
+            self.grad_scaler = GuardedGradScaler(self.guard, enabled=self.grad_scaler.is_enabled())
+
+    # ---------------------------------------------------------------- guard
+    def setup_optimizers(self) -> Optimizers:
+        if self.guard is None:
+            return super().setup_optimizers()
+        return GuardedOptimizers(self.config.optimizers.copy(), self.pipeline.get_param_groups(), self.guard)
+
+    def train_iteration(self, step: int) -> TRAIN_INTERATION_OUTPUT:
+        if self.guard is None:
+            return super().train_iteration(step)
+        self.guard.start_step()
+        loss, loss_dict, metrics_dict = super().train_iteration(step)
+        self.guard.finish_step(step, loss_dict, self.latest_checkpoint())
+        return loss, loss_dict, metrics_dict
+
+    # ---------------------------------------------------------- checkpoints
+    @property
+    def staging_dir(self) -> Path:
+        """Where a checkpoint is written before it is moved into place: a sibling of the
+        checkpoint folder (same file system, so the move is atomic; not inside it, because
+        nerfstudio's ``--load-dir`` reads every name in that folder as a step number)."""
+        return self.checkpoint_dir.parent / f".{self.checkpoint_dir.name}.partial"
+
+    def latest_checkpoint(self) -> Optional[Path]:
+        found = sorted(self.checkpoint_dir.glob(CHECKPOINT_GLOB)) if self.checkpoint_dir.exists() else []
+        return found[-1] if found else None
+
+    def _check_state_is_finite(self, step: int) -> None:
+        model = self.pipeline.module if hasattr(self.pipeline, "module") else self.pipeline
+        bad = _nonfinite_tensors(("pipeline." + k, v) for k, v in model.state_dict().items())
+        bad += _nonfinite_tensors((f"optimizers.{k}", o.state_dict()["state"]) for k, o in self.optimizers.optimizers.items())
+        if bad:
+            shown = ", ".join(bad[:8]) + (f" and {len(bad) - 8} more" if len(bad) > 8 else "")
+            raise NonFiniteTrainingError(
+                f"Refusing to write the checkpoint of step {step}: non-finite values in {shown}. "
+                f"The last good checkpoint ({self.latest_checkpoint() or 'none yet'}) is left as it is."
+            )
+
+    def save_checkpoint(self, step: int) -> None:
+        """Check the state (on every rank, so all stop together), then, on rank 0 only, write
+        with nerfstudio's ``save_checkpoint`` into the staging folder and move the file into place."""
+        self._check_state_is_finite(step)
+        if not comms.is_main_process():
+            return
+        final_dir, staging = self.checkpoint_dir, self.staging_dir
+        staging.mkdir(parents=True, exist_ok=True)
+        for leftover in staging.glob("*"):  # from a run killed while saving
+            leftover.unlink()
+        self.checkpoint_dir = staging
+        try:
+            super().save_checkpoint(step)
+        finally:
+            self.checkpoint_dir = final_dir
+        written = list(staging.glob(CHECKPOINT_GLOB))
+        if len(written) != 1:
+            raise RuntimeError(f"expected nerfstudio to write one checkpoint in {staging}, found {written}")
+        (tmp,) = written
+        with open(tmp, "rb") as f:
+            os.fsync(f.fileno())  # the bytes are on disk before the name points to them
+        final_dir.mkdir(parents=True, exist_ok=True)
+        target = final_dir / tmp.name
+        os.replace(tmp, target)
+        _fsync_dir(final_dir)
+        if self.config.save_only_latest_checkpoint:
+            for old in final_dir.glob(CHECKPOINT_GLOB):
+                if old != target:
+                    old.unlink()
+
+    def _load_checkpoint(self) -> None:
+        load_dir = self.config.load_dir
+        if load_dir is not None:
+            if not Path(load_dir).is_dir():
+                raise FileNotFoundError(f"--load-dir {load_dir}: no such folder (it is a run's nerfstudio_models/)")
+            if self.config.load_step is None and not list(Path(load_dir).glob(CHECKPOINT_GLOB)):
+                raise FileNotFoundError(
+                    f"--load-dir {load_dir} holds no checkpoint (step-*.ckpt): the run was stopped before its first "
+                    "save. Start it again without --load-dir."
+                )
+        super()._load_checkpoint()
+        if load_dir is None and self.config.load_checkpoint is None:
+            return
+        self.step = self._start_step - 1  # the loaded step: what _after_train saves if no step is left
+        if self.config.total_iterations_on_resume:
+            self.config.max_num_iterations = max(0, self.config.max_num_iterations - self._start_step)
+            CONSOLE.print(
+                f"Resuming at step {self._start_step}: {self.config.max_num_iterations} iterations left "
+                f"(--total-iterations-on-resume False trains max_num_iterations more instead)."
+            )
+
+
+def _fsync_dir(path: Path) -> None:
+    """Make a rename durable (POSIX); a no-op where folders cannot be opened (Windows)."""
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
