@@ -261,11 +261,20 @@ class SeathruModel(NerfactoModel):
                 empty_weight=self.config.binary_prior_empty_weight,
             )
         if self.training and self.config.depth_loss_mult > 0:
-            loss_dict["depth_loss"] = self.config.depth_loss_mult * self._depth_loss(outputs, batch)
+            loss = self._depth_loss(outputs, batch)
+            if loss is not None:
+                loss_dict["depth_loss"] = self.config.depth_loss_mult * loss
+            elif not getattr(self, "_warned_no_depth", False):
+                self._warned_no_depth = True
+                CONSOLE.print(
+                    "[yellow]seathru: the dataset has no depth images (depth_file_path), so no depth loss: "
+                    "seathru-process-data writes sparse SfM depths, seathru-synth writes them too"
+                )
         return loss_dict
 
-    def _depth_loss(self, outputs, batch) -> torch.Tensor:
-        """nerfacto's DS-NeRF depth loss on the object weights, where a depth is known."""
+    def _depth_loss(self, outputs, batch) -> Optional[torch.Tensor]:
+        """nerfacto's DS-NeRF depth loss on the object weights, where a depth is known
+        (``None``: the dataset has no depth images)."""
         if self.config.depth_source == "ground-truth":
             if "gt_depth" not in batch:
                 raise KeyError("depth_source='ground-truth' needs a dataset with ground_truth/depth (seathru-synth)")
@@ -273,7 +282,7 @@ class SeathruModel(NerfactoModel):
             is_euclidean = True
         else:
             if "depth_image" not in batch:
-                raise KeyError("depth_source='sfm' needs depth images (depth_file_path in transforms.json)")
+                return None
             truth = batch["depth_image"].to(self.device)  # z-depth, scene units; 0 = unknown
             is_euclidean = False
         hit = torch.isfinite(truth)

@@ -72,3 +72,24 @@ def test_nerfstudio_loader_loses_the_low_bits_ours_keeps_them(tiny_dataset):
     assert len(torch.unique(theirs)) < 5
     assert len(torch.unique(ours)) == ramp.size
     np.testing.assert_allclose(ours.numpy() * 65535.0, ramp, atol=1e-2)
+
+
+def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
+    """seathru-synth's SfM-like depth/ (nerfstudio's depth_file_path, mm) arrives as
+    ``depth_image`` in scene units, and the parser tells the model its scale."""
+    import cv2
+
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SeathruNerfstudioDataParserConfig
+    from seathru_nerfstudio.data.synthetic import SynthConfig, generate
+
+    scene = generate(SynthConfig(output_dir=tmp_path / "s", width=24, height=16, num_views=3, sfm_points_per_view=20))
+    outputs = SeathruNerfstudioDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
+    scale = float(outputs.dataparser_scale)
+    assert outputs.metadata[SCALE_KEY] == scale
+    item = LinearImageDataset(outputs)[0]
+    stored = cv2.imread(str(outputs.metadata["depth_filenames"][0]), cv2.IMREAD_ANYDEPTH)
+    assert item["depth_image"].shape == (16, 24, 1)
+    known = stored > 0
+    assert known.sum() == 20
+    np.testing.assert_allclose(item["depth_image"][..., 0].numpy()[known], stored[known] * 1e-3 * scale, rtol=1e-6)
+    assert (item["depth_image"][..., 0].numpy()[~known] == 0).all()

@@ -11,6 +11,7 @@ import torch
 
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
@@ -263,3 +264,119 @@ def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():
     callbacks = model.get_training_callbacks(None)
     callbacks[-1].run_callback_at_location(7, callbacks[-1].where_to_run[0])
     assert model._medium_step == 7
+
+
+def test_scene_medium_is_the_same_for_every_ray_and_learns():
+    model = tiny_model(medium_scope="scene", medium_init_density=0.3)
+    model.train()
+    out = model(rays(16, seed=3))
+    for name in ("medium_rgb", "medium_attenuation", "medium_backscatter"):
+        torch.testing.assert_close(out[name], out[name][:1].expand(16, 3))
+    torch.testing.assert_close(out["medium_attenuation"][0], torch.full((3,), 0.3))
+    torch.testing.assert_close(out["medium_rgb"][0], torch.full((3,), 0.5))
+    out["rgb"].sum().backward()
+    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in model.get_param_groups()["medium"])
+
+
+def test_oracle_medium_is_the_truth_per_scene_unit_and_has_no_parameters(tmp_path):
+    truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
+    (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    config = tiny_model().config
+    config.medium_oracle = tmp_path / "medium.json"
+    model = config.setup(scene_box=box, num_train_data=4, metadata={"dataparser_scale": 2.5})
+    model.eval()
+    with torch.no_grad():
+        out = model(rays(4))
+    # 1/m divided by 2.5 scene units per metre
+    torch.testing.assert_close(out["medium_attenuation"], torch.tensor([[1.3, 1.2, 0.9]]).expand(4, 3) / 2.5)
+    torch.testing.assert_close(out["medium_backscatter"], torch.tensor([[0.95, 0.85, 0.7]]).expand(4, 3) / 2.5)
+    torch.testing.assert_close(out["medium_rgb"], torch.tensor([[0.07, 0.2, 0.39]]).expand(4, 3))
+    assert "medium" not in model.get_param_groups()
+
+
+def test_lambertian_object_colour_does_not_depend_on_the_view_direction():
+    torch.manual_seed(0)
+    lambertian = tiny_model(object_view_dependent=False)
+    torch.manual_seed(0)
+    glossy = tiny_model()
+    for model in (lambertian, glossy):
+        model.eval()
+    positions = torch.tensor([[0.1, 0.2, -0.3], [0.0, -0.1, 0.2]])
+    colours = {}
+    for name, model in (("lambertian", lambertian), ("glossy", glossy)):
+        per_direction = []
+        for direction in ([0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.8, 0.6]):
+            d = torch.tensor(direction).expand(2, 3)
+            bundle = RayBundle(
+                origins=positions - 0.5 * d, directions=d, pixel_area=torch.full((2, 1), 1e-4),
+                camera_indices=torch.zeros(2, 1, dtype=torch.long), nears=torch.full((2, 1), 0.5),
+                fars=torch.full((2, 1), 0.5001),
+            )
+            samples = bundle.get_ray_samples(bin_starts=torch.full((2, 1, 1), 0.5), bin_ends=torch.full((2, 1, 1), 0.5001))
+            with torch.no_grad():
+                per_direction.append(model.field(samples)[FieldHeadNames.RGB])
+        colours[name] = torch.stack(per_direction)
+    torch.testing.assert_close(colours["lambertian"], colours["lambertian"][:1].expand_as(colours["lambertian"]))
+    assert (colours["glossy"] - colours["glossy"][:1]).abs().max() > 1e-4  # the switch is what makes the difference
+
+
+def test_asymmetric_binary_prior_prefers_empty_space():
+    t = torch.tensor([[0.0], [1.0]])
+    symmetric = [binary_transmittance_loss(t[i : i + 1]) for i in range(2)]
+    torch.testing.assert_close(symmetric[0], symmetric[1])
+    opaque, empty = (binary_transmittance_loss(t[i : i + 1], empty_weight=6.0) for i in range(2))
+    # -log(1 + 6 e^-10) at T=0 against -log(6 + e^-10) at T=1
+    torch.testing.assert_close(opaque, -torch.log(1 + 6 * torch.exp(torch.tensor(-10.0))))
+    torch.testing.assert_close(empty, -torch.log(6 + torch.exp(torch.tensor(-10.0))))
+    with pytest.raises(ValueError):
+        binary_transmittance_loss(t, empty_weight=0.0)
+
+
+def test_depth_loss_pulls_the_weights_to_the_known_depth_and_empties_open_water(model):
+    """Sparse (z-depth, 0 = unknown) and oracle (range, inf = open water) depth supervision."""
+    for source in ("sfm", "ground-truth"):
+        m = tiny_model(depth_loss_mult=1.0, depth_source=source, depth_sigma=0.05)
+        m.train()
+        bundle = rays(32, seed=4)
+        bundle.metadata["directions_norm"] = torch.ones(32, 1)
+        out = m(bundle)
+        depth = torch.full((32, 1), 0.6)
+        if source == "sfm":
+            depth[16:] = 0.0  # unknown
+            batch = {"image": torch.rand(32, 3), "depth_image": depth}
+        else:
+            depth[16:] = float("inf")  # open water
+            batch = {"image": torch.rand(32, 3), "gt_depth": depth}
+        loss = m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))["depth_loss"]
+        assert torch.isfinite(loss) and loss > 0
+        loss.backward()
+        grads = [p.grad for p in m.field.parameters() if p.grad is not None]
+        assert grads and all(torch.isfinite(g).all() for g in grads)
+    m = tiny_model(depth_loss_mult=1.0)  # a dataset without depth images trains without the term
+    m.train()
+    out = m(rays(4))
+    batch = {"image": torch.rand(4, 3)}
+    assert "depth_loss" not in m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
+    with pytest.raises(KeyError, match="ground_truth/depth"):
+        m = tiny_model(depth_loss_mult=1.0, depth_source="ground-truth")
+        m.train()
+        out = m(rays(4))
+        m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
+
+
+def test_training_metrics_carry_the_decomposition_diagnostics(model):
+    from seathru_nerfstudio import diagnostics
+
+    model.train()
+    out = model(rays(16, seed=6))
+    gt_depth = torch.full((16, 1), 1.0)
+    gt_depth[:4] = float("inf")
+    batch = {"image": torch.rand(16, 3), "gt_depth": gt_depth}
+    values = model.get_metrics_dict(out, batch)
+    torch.testing.assert_close(values["accumulation_open_water"], out["accumulation"][:4].mean().detach())
+    torch.testing.assert_close(values["medium_beta_D_r"], out["medium_attenuation"][:, 0].mean().detach())
+    share = out["backscatter"].sum() / out["rgb"].sum()
+    torch.testing.assert_close(values["backscatter_share"], share.detach())
+    line = diagnostics.format_line(values)
+    assert "open water" in line and "beta_D" in line and "backscatter share" in line

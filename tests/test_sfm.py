@@ -106,7 +106,7 @@ def test_output_layout_and_inputs_untouched(sfm_run) -> None:
     inputs = scene / "images"
     assert {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in inputs.iterdir()} == before
     assert sorted(p.name for p in dataset.iterdir()) == [
-        "images", "poses_bounds.npy", "sparse", "sparse_pc.ply", "transforms.json", "white_balance.json",
+        "depth", "images", "poses_bounds.npy", "sparse", "sparse_pc.ply", "transforms.json", "white_balance.json",
     ]  # fmt: skip
     assert {"cameras.bin", "images.bin", "points3D.bin"} <= {p.name for p in (dataset / "sparse" / "0").iterdir()}
     poses_bounds = np.load(dataset / "poses_bounds.npy")
@@ -128,3 +128,29 @@ def test_process_output_loads_with_seathru_data(sfm_run) -> None:
     assert [p.name for p in outputs.image_filenames] == [n for i, n in enumerate(names) if i % 8 != 0]
     assert outputs.metadata["near_far"].shape == (len(outputs.image_filenames), 2)
     assert 0 < outputs.metadata["near_plane"] < outputs.metadata["far_plane"]
+
+
+def test_sfm_points_become_sparse_depth_maps_that_match_the_scene(sfm_run) -> None:
+    """depth/*.png (nerfstudio's depth_file_path) hold the SfM points' z-depth; up to SfM's
+    global scale they match the true z-depth of the rendered scene."""
+    scene, dataset, _, _ = sfm_run
+    transforms = json.loads((dataset / "transforms.json").read_text())
+    truth_c2w = c2w_by_name(scene / "transforms.json")
+    sfm_c2w = c2w_by_name(dataset / "transforms.json")
+    names = sorted(set(truth_c2w) & set(sfm_c2w))
+    scale, _, _ = umeyama(np.stack([sfm_c2w[n][:3, 3] for n in names]), np.stack([truth_c2w[n][:3, 3] for n in names]))
+    K = json.loads((scene / "transforms.json").read_text())
+    ratios = []
+    for frame in transforms["frames"]:
+        sparse = cv2.imread(str(dataset / frame["depth_file_path"]), cv2.IMREAD_ANYDEPTH)
+        assert sparse is not None and sparse.dtype == np.uint16
+        v, u = np.nonzero(sparse)
+        assert len(v) > 20, frame["depth_file_path"]
+        stem = Path(frame["file_path"]).stem
+        true_range = np.load(scene / "ground_truth" / "depth" / f"{stem}.npy")[v, u]
+        norm = np.sqrt(((u + 0.5 - K["cx"]) / K["fl_x"]) ** 2 + ((v + 0.5 - K["cy"]) / K["fl_y"]) ** 2 + 1.0)
+        hit = np.isfinite(true_range)
+        ratios.append(sparse[v, u][hit] / 1000.0 * scale / (true_range[hit] / norm))
+    ratios = np.concatenate(ratios)
+    # pixel-rounded point positions at depth edges make a few outliers; the bulk is exact
+    assert np.median(np.abs(ratios - 1.0)) < 0.02, np.median(np.abs(ratios - 1.0))

@@ -104,6 +104,12 @@ def view_metrics(
         object_mask = torch.isfinite(gt_m)
         result["depth_abs_rel"] = metrics.depth_abs_rel(pred_m, gt_m)
         result["depth_abs_rel_far"] = metrics.depth_abs_rel(pred_m, gt_m, metrics.far_third_mask(gt_m))
+        if bool(object_mask.any()):
+            # robust to the few empty rays whose median depth is the far plane
+            rel = (pred_m[object_mask] - gt_m[object_mask]).abs() / gt_m[object_mask]
+            result["depth_abs_rel_median"] = float(rel.float().contiguous().median())
+            if "accumulation" in outputs:
+                result["object_accumulation"] = float(outputs["accumulation"].float()[object_mask].mean())
         if "accumulation" in outputs and bool((~object_mask).any()):
             # open water must stay empty: a wall of water colour there is a broken decomposition
             result["open_water_accumulation"] = float(outputs["accumulation"].float()[~object_mask].mean())

@@ -186,14 +186,25 @@ def llff_poses_bounds(reconstruction: pycolmap.Reconstruction) -> tuple[list[str
 
 
 def write_outputs(result: SfmResult, output_dir: Path) -> None:
-    """Write ``sparse/0`` (COLMAP binaries), ``transforms.json`` + ``sparse_pc.ply`` (via
-    nerfstudio's ``colmap_to_json``) and ``poses_bounds.npy`` into ``output_dir``."""
-    from nerfstudio.process_data.colmap_utils import colmap_to_json  # pulls in torch: only when needed
+    """Write ``sparse/0`` (COLMAP binaries), ``depth/`` (the SfM points as sparse depth maps, via
+    nerfstudio's ``create_sfm_depth``: 16-bit, COLMAP units x 1000, 0 = no point),
+    ``transforms.json`` + ``sparse_pc.ply`` (via nerfstudio's ``colmap_to_json``, with each
+    frame's ``depth_file_path``) and ``poses_bounds.npy`` into ``output_dir``.
+
+    The sparse depths anchor the object field where SfM saw structure (``--pipeline.model.
+    depth-loss-mult``): in water the image alone cannot tell a near dark surface from a far
+    bright one.
+    """
+    # both pull in torch: only when needed
+    from nerfstudio.process_data.colmap_utils import colmap_to_json, create_sfm_depth
 
     sparse = output_dir / "sparse" / "0"
     sparse.mkdir(parents=True, exist_ok=True)
     result.reconstruction.write(sparse)
-    num_frames = colmap_to_json(recon_dir=sparse, output_dir=output_dir)
+    depth_dir = output_dir / "depth"
+    depth_dir.mkdir(exist_ok=True)
+    depth_paths = create_sfm_depth(recon_dir=sparse, output_dir=depth_dir, verbose=False)
+    num_frames = colmap_to_json(recon_dir=sparse, output_dir=output_dir, image_id_to_depth_path=depth_paths)
     if num_frames != len(result.registered):
         raise SfmError(f"transforms.json has {num_frames} frames, expected {len(result.registered)}")
     _, rows = llff_poses_bounds(result.reconstruction)
