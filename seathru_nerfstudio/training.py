@@ -122,24 +122,24 @@ class NonFiniteGuard:
 
     def decide(self, parameters: Dict[str, List[torch.nn.Parameter]], groups: List[str]) -> bool:
         """Whether the optimiser step of ``groups`` must be skipped. One host sync, and under
-        ``torch.distributed`` one all-reduce, so every rank takes the same decision."""
-        names = [g for g in groups if any(p.grad is not None for p in parameters[g])]
-        flags = [
-            torch.stack([torch.isfinite(p.grad).all() for p in parameters[g] if p.grad is not None]).all()
-            for g in names
-        ]
-        if self._loss_finite is not None:
-            flags.append(self._loss_finite.to(flags[0].device) if flags else self._loss_finite)
-        if not flags:
-            self._decided = True
-            return False
-        local = torch.stack(flags).to(torch.int32)
+        ``torch.distributed`` one all-reduce of a fixed-size flag vector (one flag per group, one
+        for the loss), so every rank takes the same decision."""
+        device = self._loss_finite.device if self._loss_finite is not None else None
+        flags = []
+        for group in groups:
+            grads = [p.grad for p in parameters[group] if p.grad is not None]
+            if device is None and grads:
+                device = grads[0].device
+            flags.append(torch.stack([torch.isfinite(g).all() for g in grads]).all() if grads else None)
+        flags.append(self._loss_finite)
+        local = torch.stack([torch.ones((), dtype=torch.bool, device=device) if f is None else f.to(device) for f in flags])
+        local = local.to(torch.int32)
         combined = local
         if self.world_size > 1 and dist.is_available() and dist.is_initialized():
             combined = local.clone()
             dist.all_reduce(combined, op=dist.ReduceOp.MIN)
         local_ok, combined_ok = local.tolist(), combined.tolist()
-        self._bad_groups = [g for g, ok in zip(names, local_ok) if not ok]
+        self._bad_groups = [g for g, ok in zip(groups, local_ok) if not ok]
         self.skip = not all(combined_ok)
         self._only_elsewhere = self.skip and all(local_ok)
         self._decided = True
@@ -147,10 +147,10 @@ class NonFiniteGuard:
 
     def finish_step(self, step: int, loss_dict: Dict[str, torch.Tensor], last_checkpoint: Optional[Path]) -> None:
         """Warn about a skipped step and stop after too many in a row."""
-        if not self._decided and self._loss_finite is not None and not bool(self._loss_finite):
-            # no parameter group stepped this iteration (gradient accumulation): nothing was
-            # skipped, but a non-finite loss still counts toward the stop
-            self.skip = True
+        if not self._decided:
+            # no parameter group stepped (gradient accumulation): a non-finite loss has poisoned
+            # the accumulated gradients, and the step that uses them is the one skipped
+            return
         if not self.skip:
             self.consecutive_bad_steps = 0
             return
@@ -171,7 +171,8 @@ class NonFiniteGuard:
         if what != ["non-finite values on another rank"] or comms.is_main_process():
             CONSOLE.print(
                 f"[bold yellow]{rank}step {step}: optimiser step skipped, {'; '.join(what)} "
-                f"({self.consecutive_bad_steps}/{limit} bad steps in a row)"
+                f"({self.consecutive_bad_steps}/{limit} bad steps in a row)",
+                soft_wrap=True,  # one line, whatever the terminal width: easy to grep in a log
             )
         if self.consecutive_bad_steps >= limit:
             where = (

@@ -1,0 +1,158 @@
+"""Two processes on the CPU: a Gloo run of a tiny ``seathru-nerf-lite`` through nerfstudio's
+``Trainer`` with ``world_size``/``local_rank`` (issue 11).
+
+Each rank writes what it saw to a file; the assertions run here, in the parent."""
+
+from __future__ import annotations
+
+import contextlib
+from pathlib import Path
+from typing import Dict
+
+import pytest
+import torch
+import torch.distributed as dist
+import torch.multiprocessing as mp
+from torch.nn.parallel import DistributedDataParallel as DDP
+
+from tiny_training import make_scene, tiny_config
+
+WORLD = 2
+ITERATIONS = 4
+
+
+def _grads(trainer, ray_bundle, batch, sync: bool) -> Dict[str, torch.Tensor]:
+    """Gradients of one loss on ``ray_bundle``: this rank's own (``sync=False``, DDP's
+    ``no_sync``) or DDP's all-reduced ones. Same sampling noise both times."""
+    ddp = trainer.pipeline._model
+    model = trainer.pipeline.model
+    trainer.optimizers.zero_grad_all()
+    torch.manual_seed(1234)
+    with contextlib.nullcontext() if sync else ddp.no_sync():
+        outputs = ddp(ray_bundle)
+        loss_dict = model.get_loss_dict(outputs, batch, model.get_metrics_dict(outputs, batch))
+        sum(loss_dict.values()).backward()
+    grads = {n: p.grad.detach().clone() for n, p in model.named_parameters() if p.grad is not None}
+    trainer.optimizers.zero_grad_all()
+    return grads
+
+
+def _rank(local_rank: int, dist_url: str, scene: str, out: str) -> None:
+    from seathru_nerfstudio.distributed import use_gloo_pipeline
+    from seathru_nerfstudio.training import SeathruTrainer
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=dist_url, world_size=WORLD, rank=local_rank)
+    try:
+        config = use_gloo_pipeline(tiny_config(Path(scene), Path(out), ITERATIONS, steps_per_save=2))
+        torch.manual_seed(42 + local_rank)  # what nerfstudio's train_loop does: seed + global rank
+        trainer = config.setup(local_rank=local_rank, world_size=WORLD)
+        assert isinstance(trainer, SeathruTrainer)
+        trainer.setup()
+        assert isinstance(trainer.pipeline._model, DDP)
+        model = trainer.pipeline.model
+        initial = {k: v.detach().clone() for k, v in model.named_parameters()}
+
+        ray_bundle, batch = trainer.pipeline.datamanager.next_train(0)
+        local = _grads(trainer, ray_bundle, batch, sync=False)
+        synced = _grads(trainer, ray_bundle, batch, sync=True)
+
+        # one step through nerfstudio's training step (guard included), then a whole short run
+        trainer.pipeline.train()
+        trainer.train_iteration(0)
+        after_step = {k: v.detach().clone() for k, v in model.named_parameters()}
+        trainer.train()
+        final = {k: v.detach().clone() for k, v in model.named_parameters()}
+
+        # what rank 1 writes when asked to save: nothing
+        saved_elsewhere = Path(out) / f"rank{local_rank}_save_probe"
+        trainer.checkpoint_dir = saved_elsewhere
+        trainer.save_checkpoint(99)
+        torch.save(
+            {
+                "initial": initial,
+                "local": local,
+                "synced": synced,
+                "after_step": after_step,
+                "final": final,
+                "pixels": batch["indices"].clone(),
+                "probe_written": saved_elsewhere.exists() and any(saved_elsewhere.iterdir()),
+                "step": trainer.step,
+            },
+            Path(out) / f"rank{local_rank}.pt",
+        )
+    finally:
+        dist.destroy_process_group()
+
+
+@pytest.fixture(scope="module")
+def ranks(tmp_path_factory):
+    from seathru_nerfstudio.distributed import free_local_url
+
+    root = tmp_path_factory.mktemp("ddp")
+    scene = make_scene(root)
+    out = root / "out"
+    out.mkdir()
+    mp.spawn(_rank, args=(free_local_url(), str(scene), str(out)), nprocs=WORLD, join=True)
+    return {"out": out, "results": [torch.load(out / f"rank{r}.pt", weights_only=False) for r in range(WORLD)]}
+
+
+def test_both_ranks_take_part_and_gradients_are_averaged(ranks):
+    r0, r1 = ranks["results"]
+    assert not torch.equal(r0["pixels"], r1["pixels"]), "both ranks trained on the same rays"
+    assert r0["local"].keys() == r1["local"].keys() == r0["synced"].keys()
+    differs = [k for k in r0["local"] if not torch.allclose(r0["local"][k], r1["local"][k])]
+    assert differs, "the ranks' own gradients are identical: they did not see different data"
+    for name in r0["synced"]:
+        mean = (r0["local"][name] + r1["local"][name]) / 2
+        assert torch.allclose(r0["synced"][name], mean, atol=1e-6, rtol=1e-4), name
+        assert torch.equal(r0["synced"][name], r1["synced"][name]), name
+
+
+def test_parameters_are_identical_across_ranks_after_a_step_medium_field_included(ranks):
+    r0, r1 = ranks["results"]
+    assert any("medium_field" in k for k in r0["after_step"]), "the medium field has no parameters?"
+    for key in ("initial", "after_step", "final"):
+        for name, value in r0[key].items():
+            assert torch.equal(value, r1[key][name]), f"{key}: {name} differs between ranks"
+    moved = [k for k in r0["initial"] if not torch.equal(r0["initial"][k], r0["after_step"][k])]
+    assert any("medium_field" in k for k in moved) and any(k.startswith("field.") for k in moved), moved
+    assert r0["step"] == r1["step"] == ITERATIONS - 1
+
+
+def test_only_rank_0_writes_checkpoints_and_logs(ranks):
+    r0, r1 = ranks["results"]
+    assert r0["probe_written"] and not r1["probe_written"]
+    run = ranks["out"] / "tiny" / "seathru-nerf-lite" / "run"
+    assert [p.name for p in (run / "nerfstudio_models").iterdir()] == [f"step-{ITERATIONS - 1:09d}.ckpt"]
+    assert len(list(run.glob("events.out.tfevents.*"))) == 1
+    state = torch.load(run / "nerfstudio_models" / f"step-{ITERATIONS - 1:09d}.ckpt", map_location="cpu")
+    saved = {k[len("_model.module.") :]: v for k, v in state["pipeline"].items() if k.startswith("_model.module.")}
+    for name, value in r0["final"].items():
+        assert torch.equal(saved[name], value), name
+
+
+def test_the_cpu_entry_point_trains_with_two_processes(tmp_path):
+    """``python -m seathru_nerfstudio.distributed`` with ``ns-train``'s arguments: two Gloo
+    processes, one run folder, one checkpoint at the last step."""
+    import os
+    import subprocess
+    import sys
+
+    from tiny_training import TINY_MODEL_ARGS
+
+    scene = make_scene(tmp_path)
+    args = [
+        sys.executable, "-m", "seathru_nerfstudio.distributed", "seathru-nerf-lite",
+        "--data", str(scene), "--output-dir", str(tmp_path / "out"), "--timestamp", "cli",
+        "--machine.device-type", "cpu", "--machine.num-devices", "2",
+        "--max-num-iterations", "3", "--steps-per-save", "2", *TINY_MODEL_ARGS,
+    ]  # fmt: skip
+    env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
+    result = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    assert "2 processes here, 2 in all" in result.stdout
+    (run,) = list((tmp_path / "out").glob("*/seathru-nerf-lite/cli"))
+    assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000002.ckpt"]
+    state = torch.load(run / "nerfstudio_models" / "step-000000002.ckpt", map_location="cpu")
+    assert any(k.startswith("_model.module.medium_field") for k in state["pipeline"])  # saved from the DDP wrapper

@@ -1,0 +1,181 @@
+"""The non-finite guard and the checkpoint writer of ``SeathruTrainer`` (issue 11), with real
+nerfstudio trainers of a tiny ``seathru-nerf-lite`` on a tiny scene.
+
+NaNs are injected with a forward hook on the object field's colour head, at chosen steps."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Callable, Dict, List
+from unittest import mock
+
+import pytest
+import torch
+
+from tiny_training import make_scene, tiny_config
+
+from seathru_nerfstudio.training import GuardedGradScaler, NonFiniteTrainingError, SeathruTrainer
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> Path:
+    return make_scene(tmp_path_factory.mktemp("guard"))
+
+
+def make_trainer(scene: Path, out: Path, iterations: int, **fields) -> SeathruTrainer:
+    torch.manual_seed(0)
+    config = tiny_config(scene, out, iterations, **fields)
+    trainer = config.setup(local_rank=0, world_size=1)
+    assert isinstance(trainer, SeathruTrainer), "seathru-nerf-lite must use SeathruTrainer"
+    trainer.setup()
+    return trainer
+
+
+def inject_nan(trainer: SeathruTrainer, when: Callable[[int], bool]) -> None:
+    """NaN colours from the object field in the training steps where ``when(step)``."""
+
+    def hook(module, inputs, output):
+        if module.training and when(trainer.step):
+            return output * float("nan")
+        return None
+
+    trainer.pipeline.model.field.mlp_head.register_forward_hook(hook)
+
+
+def snapshot_each_step(trainer: SeathruTrainer) -> Dict[int, Dict[str, torch.Tensor]]:
+    """The parameters as each training step starts (its first forward pass)."""
+    seen: Dict[int, Dict[str, torch.Tensor]] = {}
+
+    def pre_hook(module, inputs):
+        if module.training and trainer.step not in seen:
+            seen[trainer.step] = {k: v.detach().clone() for k, v in module.named_parameters()}
+
+    trainer.pipeline.model.register_forward_pre_hook(pre_hook)
+    return seen
+
+
+def assert_all_finite(state, where: str = "") -> None:
+    if isinstance(state, torch.Tensor):
+        if state.is_floating_point():
+            assert torch.isfinite(state).all(), f"non-finite tensor at {where}"
+    elif isinstance(state, dict):
+        for k, v in state.items():
+            assert_all_finite(v, f"{where}.{k}")
+    elif isinstance(state, (list, tuple)):
+        for i, v in enumerate(state):
+            assert_all_finite(v, f"{where}[{i}]")
+
+
+def checkpoints(trainer: SeathruTrainer) -> List[Path]:
+    return sorted(trainer.checkpoint_dir.glob("step-*.ckpt"))
+
+
+def test_a_single_nan_step_is_skipped_with_one_warning_and_training_goes_on(scene, tmp_path, capsys):
+    iterations, bad = 8, 3
+    trainer = make_trainer(scene, tmp_path, iterations)
+    inject_nan(trainer, lambda step: step == bad)
+    params = snapshot_each_step(trainer)
+    trainer.train()
+
+    out = capsys.readouterr().out
+    warnings = [line for line in out.splitlines() if "optimiser step skipped" in line]
+    assert len(warnings) == 1, out[-3000:]
+    assert f"step {bad}:" in warnings[0] and "'rgb_loss'" in warnings[0] and "'fields'" in warnings[0]
+    assert trainer.guard.skipped_steps == [bad]
+
+    # the skipped step changed nothing; the steps around it did
+    for name, value in params[bad].items():
+        assert torch.equal(value, params[bad + 1][name]), f"{name} changed in the skipped step"
+    assert any(not torch.equal(v, params[bad + 1][k]) for k, v in params[bad + 2].items())
+
+    (ckpt,) = checkpoints(trainer)
+    state = torch.load(ckpt, map_location="cpu")
+    assert state["step"] == iterations - 1
+    assert_all_finite(state["pipeline"], "pipeline")
+    assert_all_finite(state["optimizers"], "optimizers")
+    # Adam and the learning-rate schedule followed the steps actually taken
+    adam_steps = {float(s["step"]) for s in state["optimizers"]["fields"]["state"].values()}
+    assert adam_steps == {iterations - 1.0}
+    assert state["schedulers"]["fields"]["last_epoch"] == iterations - 1
+
+
+def test_repeated_nans_stop_training_and_the_last_good_checkpoint_loads_and_renders(scene, tmp_path, capsys):
+    trainer = make_trainer(scene, tmp_path, 30, steps_per_save=4)
+    trainer.config.guard.max_consecutive_bad_steps = 3
+    first_bad = 6
+    inject_nan(trainer, lambda step: step >= first_bad)
+    with pytest.raises(NonFiniteTrainingError) as raised:
+        trainer.train()
+    message = str(raised.value)
+    assert f"stopped at step {first_bad + 2}" in message and "3 optimiser steps in a row" in message, message
+    (ckpt,) = checkpoints(trainer)
+    assert ckpt.name == "step-000000004.ckpt" and str(ckpt) in message, message
+    assert trainer.guard.skipped_steps == [6, 7, 8]
+    assert capsys.readouterr().out.count("optimiser step skipped") == 3
+
+    state = torch.load(ckpt, map_location="cpu")
+    assert_all_finite(state, "checkpoint")
+
+    resumed = make_trainer(scene, tmp_path / "resumed", 6, load_dir=ckpt.parent)
+    assert resumed._start_step == 5
+    model = resumed.pipeline.model
+    for key, value in state["pipeline"].items():
+        if key.startswith("_model."):
+            assert torch.equal(model.state_dict()[key[len("_model.") :]], value), key
+    camera = resumed.pipeline.datamanager.train_dataset.cameras[0:1].to(model.device)
+    model.eval()
+    with torch.no_grad():
+        outputs = model.get_outputs_for_camera(camera)
+    for name in ("rgb", "clean", "depth"):
+        assert outputs[name].shape[:2] == (24, 32) and torch.isfinite(outputs[name]).all(), name
+
+
+def test_a_non_finite_state_is_never_written(scene, tmp_path):
+    trainer = make_trainer(scene, tmp_path, 2)
+    trainer.train()
+    (good,) = checkpoints(trainer)
+    good_bytes = good.read_bytes()
+    with torch.no_grad():
+        next(trainer.pipeline.model.medium_field.parameters()).view(-1)[0] = float("inf")
+    with pytest.raises(NonFiniteTrainingError, match="medium_field"):
+        trainer.save_checkpoint(5)
+    assert checkpoints(trainer) == [good] and good.read_bytes() == good_bytes
+    assert not list(trainer.staging_dir.glob("*"))
+
+
+def test_a_save_killed_half_way_leaves_only_complete_checkpoints(scene, tmp_path):
+    trainer = make_trainer(scene, tmp_path, 2)
+    trainer.train()
+    (good,) = checkpoints(trainer)
+    real_save = torch.save
+
+    def dies_half_way(obj, path, *args, **kwargs):
+        real_save(obj, path, *args, **kwargs)
+        data = Path(path).read_bytes()
+        Path(path).write_bytes(data[: len(data) // 2])  # what a kill during the write leaves
+        raise KeyboardInterrupt("killed while saving")
+
+    with mock.patch("torch.save", dies_half_way), pytest.raises(KeyboardInterrupt):
+        trainer.save_checkpoint(7)
+    assert checkpoints(trainer) == [good]  # the half-written file never got a checkpoint's name
+    resumed = make_trainer(scene, tmp_path / "resumed", 3, load_dir=good.parent)
+    assert resumed._start_step == 2
+    # the next save clears the leftover and lands atomically
+    trainer.save_checkpoint(8)
+    assert [p.name for p in checkpoints(trainer)] == ["step-000000008.ckpt"]
+    assert not list(trainer.staging_dir.glob("*"))
+
+
+def test_resume_from_an_empty_load_dir_says_why(scene, tmp_path):
+    empty = tmp_path / "nerfstudio_models"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="holds no checkpoint"):
+        make_trainer(scene, tmp_path, 2, load_dir=empty)
+
+
+def test_the_guard_can_be_switched_off(scene, tmp_path):
+    trainer = make_trainer(scene, tmp_path, 3)
+    assert trainer.guard is not None
+    trainer.config.guard.enabled = False
+    plain = trainer.config.setup(local_rank=0, world_size=1)
+    assert plain.guard is None and not isinstance(plain.grad_scaler, GuardedGradScaler)

@@ -1,0 +1,72 @@
+"""Shared by the training-robustness tests: a tiny scene and a tiny ``seathru-nerf-lite`` config,
+so each training in them takes seconds on a loaded 2-core CPU."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+from typing import List
+
+BIN = Path(sys.executable).parent
+
+# Few samples, a small hash grid, few rays: ~10x cheaper per step than seathru-nerf-lite's defaults.
+TINY_MODEL_ARGS: List[str] = [
+    "--pipeline.model.num-proposal-samples-per-ray", "16", "8",
+    "--pipeline.model.num-nerf-samples-per-ray", "16",
+    "--pipeline.model.num-levels", "4",
+    "--pipeline.model.log2-hashmap-size", "12",
+    "--pipeline.model.max-res", "128",
+    "--pipeline.model.proposal-warmup", "10",
+    "--pipeline.datamanager.train-num-rays-per-batch", "256",
+    "--pipeline.datamanager.eval-num-rays-per-batch", "256",
+    "--steps-per-eval-batch", "100000",
+    "--steps-per-eval-image", "100000",
+    "--steps-per-eval-all-images", "100000",
+    "--logging.steps-per-log", "1",
+    "--vis", "tensorboard",
+]  # fmt: skip
+
+
+def make_scene(root: Path) -> Path:
+    """A 32x24, 6-view synthetic water scene (``seathru-synth``)."""
+    scene = root / "scene"
+    if not (scene / "transforms.json").exists():
+        subprocess.run(
+            [str(BIN / "seathru-synth"), "--output-dir", str(scene), "--width", "32", "--height", "24", "--num-views", "6"],
+            check=True,
+            capture_output=True,
+        )
+    return scene
+
+
+def tiny_config(scene: Path, output_dir: Path, iterations: int, **trainer_fields):
+    """``seathru-nerf-lite`` shrunk as ``TINY_MODEL_ARGS``, writing under ``output_dir``, as a
+    config object (for in-process trainers)."""
+    from seathru_nerfstudio.config import seathru_nerf_lite_config
+
+    config = seathru_nerf_lite_config()
+    model = config.pipeline.model
+    model.num_proposal_samples_per_ray = (16, 8)
+    model.num_nerf_samples_per_ray = 16
+    model.num_levels = 4
+    model.log2_hashmap_size = 12
+    model.max_res = 128
+    model.proposal_warmup = 10
+    dm = config.pipeline.datamanager
+    dm.train_num_rays_per_batch = dm.eval_num_rays_per_batch = 256
+    dm.data = scene
+    config.data = scene
+    config.steps_per_eval_batch = config.steps_per_eval_image = config.steps_per_eval_all_images = 100_000
+    config.logging.steps_per_log = 1
+    config.vis = "tensorboard"
+    config.output_dir = output_dir
+    config.experiment_name = "tiny"
+    config.timestamp = "run"
+    config.max_num_iterations = iterations
+    config.steps_per_save = iterations
+    for key, value in trainer_fields.items():
+        if not hasattr(config, key):
+            raise AttributeError(f"{type(config).__name__} has no field {key!r}")
+        setattr(config, key, value)
+    return config
