@@ -93,3 +93,7 @@ def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
     assert known.sum() == 20
     np.testing.assert_allclose(item["depth_image"][..., 0].numpy()[known], stored[known] * 1e-3 * scale, rtol=1e-6)
     assert (item["depth_image"][..., 0].numpy()[~known] == 0).all()
+    # the nearest SfM depths bound where objects can be: about the nearest true range
+    true_range = min(float(np.load(p).min()) for p in (scene / "ground_truth" / "depth").glob("*.npy"))
+    near_m = outputs.metadata["near_plane"] / scale
+    assert 0.8 * true_range < near_m < 1.5 * true_range, (near_m, true_range)

@@ -117,6 +117,9 @@ def apply_overrides(config: TrainerConfig, overrides: Dict[str, str]) -> List[st
         path = key.split(".") if "." in key else ["pipeline", "model", key]
         target: Any = config
         for part in path[:-1]:
+            if isinstance(target, dict) and part in target:  # e.g. optimizers.medium.optimizer.lr
+                target = target[part]
+                continue
             if not hasattr(target, part):
                 raise ValueError(f"override {key!r}: no field {part!r}")
             target = getattr(target, part)

@@ -1,0 +1,59 @@
+"""The decomposition moves the right way on a tiny water scene (issue 8).
+
+One short ``seathru-bench`` run of ``seathru-nerf-lite`` with its default settings on a
+48x36 synthetic water scene, evaluated early and at the end. Loose bounds that fit CI's time:
+the clean image's error falls, the veiling light moves toward the truth, open water stays
+empty, and the medium's densities stay in a physical range. The full-size figures are in
+docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import pytest
+
+ITERATIONS = 200
+
+
+@pytest.fixture(scope="module")
+def run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("decomposition")
+    cmd = [
+        sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run",
+        "--scenes", "water", "--methods", "seathru-nerf-lite", "--output-dir", str(out),
+        "--budget-iterations", str(ITERATIONS), "--num-evals", "2", "--first-eval-fraction", "0.05",
+        "--width", "48", "--height", "36", "--num-views", "10",
+    ]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    results = json.loads((out / "results.json").read_text())
+    assert results["failures"] == []
+    (seathru,) = results["runs"]
+    return seathru["evals"][0], seathru["evals"][-1]
+
+
+@pytest.mark.slow
+def test_clean_error_falls(run):
+    early, late = run
+    assert late["step"] == ITERATIONS
+    assert late["metrics"]["clean_psnr"] > early["metrics"]["clean_psnr"] + 1.0, (early["metrics"], late["metrics"])
+
+
+@pytest.mark.slow
+def test_veiling_light_moves_toward_the_truth(run):
+    early, late = run
+    assert late["medium_error"]["B_inf"]["rel_mean"] < 0.5 * early["medium_error"]["B_inf"]["rel_mean"]
+    assert late["medium_error"]["B_inf"]["rel_mean"] < 0.5
+
+
+@pytest.mark.slow
+def test_open_water_stays_empty_and_the_medium_stays_physical(run):
+    _, late = run
+    assert late["metrics"]["open_water_accumulation"] < 0.2
+    for key in ("beta_D", "beta_B"):
+        # within a factor 4 of the truth (1/m): no veil in front of the lens, no clear water
+        for predicted, true in zip(late["medium_error"][key]["pred"], late["medium_error"][key]["true"]):
+            assert true / 4 < predicted < 4 * true, (key, late["medium_error"][key])
