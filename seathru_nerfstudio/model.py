@@ -70,6 +70,10 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_model: Literal["final", "basic"] = "final"
     """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
     for both (eqs. 11-13), for the ablation."""
+    medium_first_steps: int = 0
+    """Train only the medium (and the proposal sampler) for this many steps before the object
+    field starts learning. The untrained medium's veiling light is far brighter than dark water;
+    if the object field learns first, it cancels it with a black screen in front of the lens."""
     medium_warmup_steps: int = 0
     """Iterations over which the medium densities ramp up linearly from 0 (clear water); 0: off.
     Experimental: on the demo scene it gave the best in-medium PSNR but baked the water into the
@@ -105,6 +109,8 @@ class SeathruModel(NerfactoModel):
         # nerfacto builds LPIPS here, which downloads AlexNet: build it only if it is on disk.
         with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", metrics.make_lpips):
             super().populate_modules()
+        self.train_step: Optional[int] = None
+        """The trainer's step while training (a callback sets it); None in a loaded model."""
         metadata = self.kwargs.get("metadata") or {}
         self.world_scale = float(metadata.get(SCALE_KEY, 1.0))
         """Scene units per world unit (metre): a density per scene unit times this is per metre."""
@@ -144,10 +150,14 @@ class SeathruModel(NerfactoModel):
         """Scale on the medium densities: 0 -> 1 over the warm-up, 1 afterwards (and when a
         checkpoint is loaded for eval or rendering)."""
         warmup = self.config.medium_warmup_steps
-        step = getattr(self, "_medium_step", None)
-        if warmup <= 0 or step is None:
+        if warmup <= 0 or self.train_step is None:
             return 1.0
-        return min(1.0, step / warmup)
+        return min(1.0, self.train_step / warmup)
+
+    @property
+    def object_frozen(self) -> bool:
+        """True in the first ``medium_first_steps`` training steps, where only the medium learns."""
+        return self.training and self.train_step is not None and self.train_step < self.config.medium_first_steps
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes
@@ -164,7 +174,7 @@ class SeathruModel(NerfactoModel):
             )
 
         def set_step(step: int) -> None:
-            self._medium_step = step
+            self.train_step = step
 
         callbacks.append(
             TrainingCallback(
@@ -192,6 +202,8 @@ class SeathruModel(NerfactoModel):
             self.camera_optimizer.apply_to_raybundle(ray_bundle)
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
         field_outputs = self.field.forward(ray_samples)
+        if self.object_frozen:
+            field_outputs = {name: value.detach() for name, value in field_outputs.items()}
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         medium = self.medium_field(ray_bundle.directions)  # once per ray
@@ -297,6 +309,10 @@ class SeathruModel(NerfactoModel):
             is_euclidean=is_euclidean,
             depth_loss_type=DepthLossType.DS_NERF,
         )
+        # nerfstudio averages over every ray of the batch; average over the rays that have a
+        # depth instead, so that the weight does not depend on how sparse the SfM points are.
+        known = (hit & (truth > 0)).float()
+        loss = loss * known.numel() / torch.clamp(known.sum(), min=1.0)
         if not is_euclidean:
             return loss
         # Open water: nothing to hit, so no object opacity.

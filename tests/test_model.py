@@ -250,11 +250,11 @@ def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():
     assert model.medium_ramp == 1.0  # a loaded checkpoint renders the full medium
     with torch.no_grad():
         full = model(bundle)
-        model._medium_step = 25
+        model.train_step = 25
         quarter = model(bundle)
-        model._medium_step = 0
+        model.train_step = 0
         clear = model(bundle)
-        model._medium_step = 400
+        model.train_step = 400
         after = model(bundle)
     torch.testing.assert_close(quarter["medium_attenuation"], 0.25 * full["medium_attenuation"])
     torch.testing.assert_close(quarter["medium_backscatter"], 0.25 * full["medium_backscatter"])
@@ -263,7 +263,7 @@ def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():
     torch.testing.assert_close(after["rgb"], full["rgb"])
     callbacks = model.get_training_callbacks(None)
     callbacks[-1].run_callback_at_location(7, callbacks[-1].where_to_run[0])
-    assert model._medium_step == 7
+    assert model.train_step == 7
 
 
 def test_scene_medium_is_the_same_for_every_ray_and_learns():
@@ -380,3 +380,19 @@ def test_training_metrics_carry_the_decomposition_diagnostics(model):
     torch.testing.assert_close(values["backscatter_share"], share.detach())
     line = diagnostics.format_line(values)
     assert "open water" in line and "beta_D" in line and "backscatter share" in line
+
+
+def test_medium_first_steps_freeze_the_object_field_only():
+    model = tiny_model(medium_first_steps=5, medium_scope="scene")
+    model.train()
+    for step, frozen in ((0, True), (4, True), (5, False)):
+        model.train_step = step
+        model.zero_grad()
+        out = model(rays(16, seed=7))
+        out["rgb"].sum().backward()
+        field_grads = [p.grad for p in model.field.parameters() if p.grad is not None and p.grad.abs().sum() > 0]
+        medium_grads = [p.grad for p in model.medium_field.parameters() if p.grad is not None]
+        assert bool(field_grads) != frozen, step
+        assert medium_grads and all(g.abs().sum() > 0 for g in medium_grads)
+    model.eval()
+    assert not model.object_frozen  # never outside training
