@@ -70,10 +70,16 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_model: Literal["final", "basic"] = "final"
     """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
     for both (eqs. 11-13), for the ablation."""
+    far_bound_margin: float = 0.0
+    """If > 0 and the dataparser gives the scene's far bound (SfM depths, poses_bounds.npy),
+    the object field ends at this multiple of it instead of at ``far_plane``: light from much
+    farther does not come back through water, and an unbounded field starts as an opaque
+    wall behind the open water. 0: nerfacto's ``far_plane``."""
     medium_first_steps: int = 0
-    """Train only the medium (and the proposal sampler) for this many steps before the object
-    field starts learning. The untrained medium's veiling light is far brighter than dark water;
-    if the object field learns first, it cancels it with a black screen in front of the lens."""
+    """For this many steps the scene is empty and only the veiling light learns (it fits the
+    images' average water colour), then the object field starts. The untrained veiling light
+    (0.5) is far brighter than dark water; if the object field learns first, it cancels it with a
+    black screen in front of the lens (measured: clean image black, open water opaque)."""
     medium_warmup_steps: int = 0
     """Iterations over which the medium densities ramp up linearly from 0 (clear water); 0: off.
     Experimental: on the demo scene it gave the best in-medium PSNR but baked the water into the
@@ -111,6 +117,8 @@ class SeathruModel(NerfactoModel):
             super().populate_modules()
         self.train_step: Optional[int] = None
         """The trainer's step while training (a callback sets it); None in a loaded model."""
+        self.last_diagnostics: Dict[str, torch.Tensor] = {}
+        """:func:`diagnostics.decomposition` of the last training batch (also in the metrics)."""
         metadata = self.kwargs.get("metadata") or {}
         self.world_scale = float(metadata.get(SCALE_KEY, 1.0))
         """Scene units per world unit (metre): a density per scene unit times this is per metre."""
@@ -118,11 +126,13 @@ class SeathruModel(NerfactoModel):
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
         if "near_plane" in metadata:
-            # The scene's own near bound (seathru-data: poses_bounds.npy), with a margin; the
-            # renderer adds the water in front of it in closed form, so nothing is lost.
-            self.collider = NearFarCollider(
-                near_plane=0.9 * float(metadata["near_plane"]), far_plane=self.config.far_plane
-            )
+            # The scene's own bounds (seathru-data: poses_bounds.npy; nerfstudio-data: the SfM
+            # depths), with margins; the renderer adds the water in front of the near and behind
+            # the far bound in closed form, so nothing is lost.
+            far = self.config.far_plane
+            if self.config.far_bound_margin > 0 and "far_plane" in metadata:
+                far = self.config.far_bound_margin * float(metadata["far_plane"])
+            self.collider = NearFarCollider(near_plane=0.9 * float(metadata["near_plane"]), far_plane=far)
         # Viewer controls and display transform (no parameters; never applied in training).
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
 
@@ -186,7 +196,7 @@ class SeathruModel(NerfactoModel):
         return callbacks
 
     def _print_diagnostics(self, step: int) -> None:
-        values = getattr(self, "_last_diagnostics", None)
+        values = self.last_diagnostics
         if values:
             CONSOLE.print(f"[dim]seathru step {step}:[/] {diagnostics.format_line(values)}")
 
@@ -203,7 +213,10 @@ class SeathruModel(NerfactoModel):
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
         field_outputs = self.field.forward(ray_samples)
         if self.object_frozen:
+            # No object yet: every ray shows the veiling light, which fits the images' average
+            # water colour; the densities get no gradient from a scene that is not there.
             field_outputs = {name: value.detach() for name, value in field_outputs.items()}
+            field_outputs[FieldHeadNames.DENSITY] = torch.zeros_like(field_outputs[FieldHeadNames.DENSITY])
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         medium = self.medium_field(ray_bundle.directions)  # once per ray
@@ -257,7 +270,7 @@ class SeathruModel(NerfactoModel):
         if self.training:
             values = diagnostics.decomposition(outputs, batch.get("gt_depth"), self.world_scale)
             metrics_dict.update(values)  # TensorBoard: "Train Metrics Dict/..."
-            self._last_diagnostics = values
+            self.last_diagnostics = values
         return metrics_dict
 
     def get_loss_dict(self, outputs, batch, metrics_dict=None):

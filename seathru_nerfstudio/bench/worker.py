@@ -220,7 +220,9 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
         train_time += dt
         step += 1
         if train_time - last_progress > 1.0 or budget_kind == "iterations":
-            _emit("progress", step=step, train_time=train_time, loss=float(loss))
+            # SeaThru's decomposition diagnostics of the last batch (medium, open-water opacity)
+            diagnostics = {k: float(v) for k, v in getattr(pipeline.model, "last_diagnostics", {}).items()}
+            _emit("progress", step=step, train_time=train_time, loss=float(loss), diagnostics=diagnostics)
             last_progress = train_time
 
     result = {

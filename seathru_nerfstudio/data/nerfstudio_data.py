@@ -4,11 +4,13 @@
   oracle medium in 1/m. Both need the dataparser scale (scene units per world unit), which
   nerfstudio keeps in ``DataparserOutputs.dataparser_scale`` but does not hand to the model;
   this parser copies it into ``metadata["dataparser_scale"]``, which the model receives.
-* When the frames have sparse SfM depths (``depth_file_path``), the nearest of them bounds
-  where objects can be, as LLFF's ``poses_bounds`` do for ``seathru-data``:
-  ``metadata["near_plane"]`` (scene units). In water this matters: an object field allowed
+* When the frames have sparse SfM depths (``depth_file_path``), they bound where objects
+  are, as LLFF's ``poses_bounds`` do for ``seathru-data``: ``metadata["near_plane"]`` and
+  ``metadata["far_plane"]`` (scene units). In water this matters: an object field allowed
   right in front of the lens can explain the whole image as a dark screen veiled by
-  backscatter, which the renderer's closed-form water in front of the near plane rules out.
+  backscatter, and one allowed out to nerfacto's 1000 units starts as an opaque wall behind
+  the open water, which no gradient removes once the water hides it. The renderer's
+  closed-form water before the near and after the far bound keeps the medium unclipped.
 """
 
 from __future__ import annotations
@@ -27,7 +29,7 @@ SCALE_KEY = "dataparser_scale"
 """Metadata key: scene units per world unit (a float)."""
 NEAR_PERCENTILE = 0.1
 """Per image, the near bound is this percentile of its SfM depths (LLFF's choice), so that a
-stray point does not set it."""
+stray point does not set it; the far bound the opposite percentile."""
 
 
 @dataclass
@@ -47,19 +49,22 @@ class SeathruNerfstudio(Nerfstudio):
         depth_files = outputs.metadata.get("depth_filenames")
         if depth_files:
             unit = float(outputs.metadata["depth_unit_scale_factor"])
-            near = sfm_near_bound(depth_files, outputs.cameras.height, outputs.cameras.width)
-            if near is not None:
-                outputs.metadata["near_plane"] = near * unit * scale
+            bounds = sfm_bounds(depth_files, outputs.cameras.height, outputs.cameras.width)
+            if bounds is not None:
+                outputs.metadata["near_plane"] = bounds[0] * unit * scale
+                outputs.metadata["far_plane"] = bounds[1] * unit * scale
         return outputs
 
 
-def sfm_near_bound(depth_files, heights, widths) -> float | None:
-    """Smallest per-image ``NEAR_PERCENTILE`` of the sparse depths (file units; z-depth, which
-    is never more than the range, so the bound is conservative); ``None`` without any point."""
-    nears = []
+def sfm_bounds(depth_files, heights, widths) -> tuple[float, float] | None:
+    """(near, far): the smallest per-image ``NEAR_PERCENTILE`` and the largest per-image
+    ``100 - NEAR_PERCENTILE`` percentile of the sparse depths, in file units (z-depth);
+    ``None`` without any point."""
+    nears, fars = [], []
     for path, height, width in zip(depth_files, heights.flatten().tolist(), widths.flatten().tolist()):
         depth = get_depth_image_from_path(Path(path), int(height), int(width), scale_factor=1.0).numpy()
         known = depth[depth > 0]
         if known.size:
             nears.append(float(np.percentile(known, NEAR_PERCENTILE)))
-    return min(nears) if nears else None
+            fars.append(float(np.percentile(known, 100.0 - NEAR_PERCENTILE)))
+    return (min(nears), max(fars)) if nears else None
