@@ -102,6 +102,11 @@ class SceneMedium(nn.Module):
         self.rgb_logit = nn.Parameter(torch.full((3,), rgb_logit))
         self.density_raw = nn.Parameter(torch.full((6,), inverse_softplus(init_density)))
 
+    def density_parameters(self) -> list:
+        """The attenuation and backscatter densities: weakly determined by the images, so they
+        learn in their own, slower optimiser group; the veiling light is seen directly in open water."""
+        return [self.density_raw]
+
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())
         return MediumOutputs(

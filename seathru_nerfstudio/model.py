@@ -48,17 +48,18 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Spherical-harmonic levels of the medium's direction encoding."""
     medium_init_density: float = 0.5
     """Initial sigma_attn and sigma_bs, per scene unit."""
-    medium_scope: Literal["ray", "scene"] = "ray"
+    medium_scope: Literal["ray", "scene"] = "scene"
     """``ray``: the paper's MLP of the ray direction (water that changes with the viewing
     direction). ``scene``: one homogeneous water body, nine learned constants."""
     medium_oracle: Optional[Path] = None
     """Diagnostic: a ``medium.json`` (``beta_D``, ``beta_B`` in 1/world unit, ``B_inf``, as
     ``seathru-synth`` writes) whose medium is held fixed; only the object field learns."""
-    object_view_dependent: bool = True
+    object_view_dependent: bool = False
     """Object colour depends on the view direction (nerfacto). Off: Lambertian colour, as
     the official SeaThru-NeRF; then a view-dependent look must come from the medium."""
-    depth_loss_mult: float = 0.0
-    """Weight of nerfacto's DS-NeRF depth loss; 0: off. Its source is ``depth_source``."""
+    depth_loss_mult: float = 1e-3
+    """Weight of nerfacto's DS-NeRF depth loss (mean over the rays that have a depth); 0: off.
+    Its source is ``depth_source``; a dataset without depth images trains without it."""
     depth_source: Literal["sfm", "ground-truth"] = "sfm"
     """``sfm``: the dataset's depth images (nerfstudio's ``depth_file_path``; sparse SfM
     depths, 0 where unknown). ``ground-truth``: diagnostic, the synthetic scenes' true range
@@ -70,12 +71,12 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_model: Literal["final", "basic"] = "final"
     """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
     for both (eqs. 11-13), for the ablation."""
-    far_bound_margin: float = 0.0
+    far_bound_margin: float = 2.0
     """If > 0 and the dataparser gives the scene's far bound (SfM depths, poses_bounds.npy),
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
     farther does not come back through water, and an unbounded field starts as an opaque
     wall behind the open water. 0: nerfacto's ``far_plane``."""
-    medium_first_steps: int = 0
+    medium_first_steps: int = 200
     """For this many steps the scene is empty and only the veiling light learns (it fits the
     images' average water colour), then the object field starts. The untrained veiling light
     (0.5) is far brighter than dark water; if the object field learns first, it cancels it with a
@@ -95,7 +96,7 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Weight of the binary prior on the object transmittance (lambda in the paper)."""
     binary_prior_scale: float = 0.1
     """Scale of the two Laplacians of the binary prior."""
-    binary_prior_empty_weight: float = 1.0
+    binary_prior_empty_weight: float = 6.0
     """Weight of the prior's mode at ``T = 1`` (empty space) against ``T = 0``: 1 is
     symmetric; the official code uses 6, AkerBP's port 100."""
     # Paper-faithful departures from nerfacto's defaults: no distortion loss, no per-image
@@ -202,9 +203,14 @@ class SeathruModel(NerfactoModel):
 
     def get_param_groups(self) -> Dict[str, List[Parameter]]:
         param_groups = super().get_param_groups()
-        medium = list(self.medium_field.parameters())
-        if medium:  # an oracle medium has none
-            param_groups["medium"] = medium
+        # "medium_density": the densities of a per-scene medium, slower than its colour (see
+        # SceneMedium.density_parameters); "medium": the rest (all of a per-ray MLP). An oracle has none.
+        density = list(getattr(self.medium_field, "density_parameters", list)())
+        rest = [p for p in self.medium_field.parameters() if all(p is not d for d in density)]
+        if rest:
+            param_groups["medium"] = rest
+        if density:
+            param_groups["medium_density"] = density
         return param_groups
 
     def get_outputs(self, ray_bundle: RayBundle):
@@ -221,6 +227,10 @@ class SeathruModel(NerfactoModel):
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         medium = self.medium_field(ray_bundle.directions)  # once per ray
         medium = viewer.override_medium(self, medium)  # identity unless a viewer/ns-render render
+        if self.object_frozen:
+            # An empty scene shows exactly c_med on every ray, whatever the densities: keep round-off
+            # gradients (which Adam would scale up to full steps) off them.
+            medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())
         ramp = self.medium_ramp
         if ramp < 1.0:
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn * ramp, sigma_bs=medium.sigma_bs * ramp)
