@@ -54,10 +54,7 @@ def _optimizers(max_steps: int) -> dict:
             "optimizer": AdamOptimizerConfig(lr=5e-2, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=5e-4, max_steps=max_steps),
         },
-        "medium_density": {
-            "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
-            "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-5, max_steps=max_steps),
-        },
+        "medium_density": adam(),
         "camera_opt": {
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),
             "scheduler": ExponentialDecaySchedulerConfig(lr_final=1e-4, max_steps=5000),

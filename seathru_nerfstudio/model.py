@@ -57,7 +57,7 @@ class SeathruModelConfig(NerfactoModelConfig):
     object_view_dependent: bool = False
     """Object colour depends on the view direction (nerfacto). Off: Lambertian colour, as
     the official SeaThru-NeRF; then a view-dependent look must come from the medium."""
-    depth_loss_mult: float = 1e-3
+    depth_loss_mult: float = 1e-2
     """Weight of nerfacto's DS-NeRF depth loss (mean over the rays that have a depth); 0: off.
     Its source is ``depth_source``; a dataset without depth images trains without it."""
     depth_source: Literal["sfm", "ground-truth"] = "sfm"
@@ -92,8 +92,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     """``linear`` data trains with RawNeRF's relative L2; ``srgb`` data with plain L2."""
     rawnerf_eps: float = 1e-3
     """epsilon of the RawNeRF loss."""
-    binary_prior_mult: float = 1e-4
-    """Weight of the binary prior on the object transmittance (lambda in the paper)."""
+    binary_prior_mult: float = 1e-3
+    """Weight of the binary prior on the object transmittance (lambda; the paper's 1e-4 left the
+    open water filled and the surfaces half transparent on the water demo, see docs/benchmarks.md)."""
     binary_prior_scale: float = 0.1
     """Scale of the two Laplacians of the binary prior."""
     binary_prior_empty_weight: float = 6.0
