@@ -18,6 +18,8 @@ TINY_MODEL_ARGS: List[str] = [
     "--pipeline.model.log2-hashmap-size", "12",
     "--pipeline.model.max-res", "128",
     "--pipeline.model.proposal-warmup", "10",
+    # the object field learns from step 0: these tests are about the trainer, not the decomposition
+    "--pipeline.model.medium-first-steps", "0",
     "--pipeline.datamanager.train-num-rays-per-batch", "256",
     "--pipeline.datamanager.eval-num-rays-per-batch", "256",
     "--steps-per-eval-batch", "100000",
@@ -53,6 +55,7 @@ def tiny_config(scene: Path, output_dir: Path, iterations: int, **trainer_fields
     model.log2_hashmap_size = 12
     model.max_res = 128
     model.proposal_warmup = 10
+    model.medium_first_steps = 0  # the object field learns from step 0 (see TINY_MODEL_ARGS)
     dm = config.pipeline.datamanager
     dm.train_num_rays_per_batch = dm.eval_num_rays_per_batch = 256
     dm.data = scene
