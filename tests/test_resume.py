@@ -15,6 +15,8 @@ import pytest
 import torch
 import yaml
 
+import seathru_nerfstudio.config  # noqa: F401,E402  (allow-lists nerfstudio checkpoints for torch.load, as ns-train does)
+
 from tiny_training import BIN, TINY_MODEL_ARGS, make_scene
 
 TOTAL = 30
