@@ -168,8 +168,16 @@ class SeathruModel(NerfactoModel):
 
     @property
     def object_frozen(self) -> bool:
-        """True in the first ``medium_first_steps`` training steps, where only the medium learns."""
-        return self.training and self.train_step is not None and self.train_step < self.config.medium_first_steps
+        """True in the first ``medium_first_steps`` training steps, where only the medium learns.
+
+        Never with a fixed medium (``medium_oracle``): there would be nothing to learn."""
+        medium_learns = any(p.requires_grad for p in self.medium_field.parameters())
+        return (
+            medium_learns
+            and self.training
+            and self.train_step is not None
+            and self.train_step < self.config.medium_first_steps
+        )
 
     def get_training_callbacks(
         self, training_callback_attributes: TrainingCallbackAttributes

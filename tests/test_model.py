@@ -404,3 +404,17 @@ def test_medium_first_steps_freeze_the_object_field_only():
             assert out["accumulation"].abs().max() == 0
     model.eval()
     assert not model.object_frozen  # never outside training
+
+
+def test_medium_first_steps_do_not_freeze_the_object_field_under_a_fixed_medium(tmp_path):
+    # With the true medium held fixed nothing would learn in that stage (and the loss would
+    # have no gradient at all), so the object field trains from step 0.
+    truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
+    (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
+    model = tiny_model(medium_first_steps=5, medium_oracle=tmp_path / "medium.json")
+    model.train()
+    model.train_step = 0
+    assert not model.object_frozen
+    out = model(rays(16, seed=7))
+    out["rgb"].sum().backward()
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
