@@ -1,6 +1,12 @@
-"""The registered methods: ``seathru-nerf`` (GPU, paper-faithful) and ``seathru-nerf-lite`` (CPU/laptop)."""
+"""The registered methods: ``seathru-nerf`` (GPU, paper-faithful) and ``seathru-nerf-lite`` (CPU/laptop).
+
+Both are built by :func:`method_config`; they differ only in size (rays, samples, hash grid,
+medium MLP), iterations and evaluation cadence.
+"""
 
 from __future__ import annotations
+
+from typing import Any, Dict
 
 import torch
 
@@ -15,13 +21,16 @@ from seathru_nerfstudio import compat
 from seathru_nerfstudio.data.linear_images import LinearImageDataset
 from seathru_nerfstudio.data.nerfstudio_data import SeathruNerfstudioDataParserConfig
 from seathru_nerfstudio.model import SeathruModelConfig
-from seathru_nerfstudio.pipeline import SeathruPipelineConfig  # evaluates on linear outputs
+from seathru_nerfstudio.pipeline import SeathruPipelineConfig  # evaluations without the viewer's water controls
 from seathru_nerfstudio.training import SeathruTrainerConfig  # non-finite guard, crash-safe checkpoints
 
 compat.allow_nerfstudio_checkpoints()
 
 LOOPBACK = "127.0.0.1"
 """Our viewer listens on loopback only; ``--viewer.websocket-host 0.0.0.0`` opts in to more."""
+
+MEDIUM_FIRST_STEPS = 200
+"""Steps in which only the veiling light learns (``SeathruModelConfig.medium_first_steps``)."""
 
 
 def _machine() -> MachineConfig:
@@ -31,10 +40,6 @@ def _machine() -> MachineConfig:
     if getattr(torch.backends, "mps", None) is not None and torch.backends.mps.is_available():
         return MachineConfig(device_type="mps")
     return MachineConfig(device_type="cpu")
-
-
-MEDIUM_FIRST_STEPS = 200
-"""Steps in which only the veiling light learns (``SeathruModelConfig.medium_first_steps``)."""
 
 
 def _optimizers(max_steps: int) -> dict:
@@ -62,38 +67,56 @@ def _optimizers(max_steps: int) -> dict:
     }
 
 
-def _datamanager(rays: int) -> ParallelDataManagerConfig:
-    return ParallelDataManagerConfig(
-        _target=ParallelDataManager[LinearImageDataset],
-        dataparser=SeathruNerfstudioDataParserConfig(),
-        train_num_rays_per_batch=rays,
-        eval_num_rays_per_batch=rays,
+def method_config(
+    method_name: str,
+    *,
+    iterations: int,
+    rays: int,
+    chunk: int,
+    optimizer_steps: int,
+    model: Dict[str, Any],
+    **trainer: Any,
+) -> TrainerConfig:
+    """One SeaThru method: ``rays`` per batch, renders in chunks of ``chunk`` rays,
+    ``model`` on top of :class:`SeathruModelConfig`'s defaults, ``trainer`` on top of
+    :class:`SeathruTrainerConfig`'s."""
+    return SeathruTrainerConfig(
+        method_name=method_name,
+        max_num_iterations=iterations,
+        machine=_machine(),
+        pipeline=SeathruPipelineConfig(
+            datamanager=ParallelDataManagerConfig(
+                _target=ParallelDataManager[LinearImageDataset],
+                dataparser=SeathruNerfstudioDataParserConfig(),
+                train_num_rays_per_batch=rays,
+                eval_num_rays_per_batch=rays,
+            ),
+            model=SeathruModelConfig(
+                eval_num_rays_per_chunk=chunk,
+                average_init_density=0.01,
+                medium_first_steps=MEDIUM_FIRST_STEPS,
+                **model,
+            ),
+        ),
+        optimizers=_optimizers(optimizer_steps),
+        viewer=ViewerConfig(num_rays_per_chunk=chunk, websocket_host=LOOPBACK),
+        vis="viewer",
+        **trainer,
     )
 
 
 def seathru_nerf_config() -> TrainerConfig:
     """Paper-faithful settings for a CUDA GPU: 16384 rays, the paper's 6x256 medium MLP."""
-    iterations = 50_000
-    return SeathruTrainerConfig(
-        method_name="seathru-nerf",
+    return method_config(
+        "seathru-nerf",
+        iterations=50_000,
+        rays=16384,
+        chunk=1 << 15,
+        optimizer_steps=200_000,
+        model=dict(medium_num_layers=6, medium_hidden_dim=256),
         steps_per_eval_batch=500,
         steps_per_save=2000,
-        max_num_iterations=iterations,
         mixed_precision=True,
-        machine=_machine(),
-        pipeline=SeathruPipelineConfig(
-            datamanager=_datamanager(16384),
-            model=SeathruModelConfig(
-                eval_num_rays_per_chunk=1 << 15,
-                average_init_density=0.01,
-                medium_num_layers=6,
-                medium_hidden_dim=256,
-                medium_first_steps=MEDIUM_FIRST_STEPS,
-            ),
-        ),
-        optimizers=_optimizers(200_000),
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 15, websocket_host=LOOPBACK),
-        vis="viewer",
     )
 
 
@@ -101,35 +124,28 @@ def seathru_nerf_lite_config() -> TrainerConfig:
     """Sized for a CPU or laptop GPU: 1024 rays, 64/32 proposal and 32 NeRF samples,
     a 2^15-entry 8-level hash grid, torch implementation, a 2x64 medium MLP."""
     iterations = 1500
-    return SeathruTrainerConfig(
-        method_name="seathru-nerf-lite",
+    return method_config(
+        "seathru-nerf-lite",
+        iterations=iterations,
+        rays=1024,
+        chunk=1 << 13,
+        optimizer_steps=iterations * 4,
+        model=dict(
+            implementation="torch",
+            num_proposal_samples_per_ray=(64, 32),
+            num_nerf_samples_per_ray=32,
+            log2_hashmap_size=15,
+            num_levels=8,
+            max_res=1024,
+            proposal_warmup=iterations // 3,
+            medium_num_layers=2,
+            medium_hidden_dim=64,
+        ),
         steps_per_eval_batch=100,
         steps_per_eval_image=500,
         steps_per_eval_all_images=100_000,
         steps_per_save=500,
-        max_num_iterations=iterations,
         mixed_precision=False,
-        machine=_machine(),
-        pipeline=SeathruPipelineConfig(
-            datamanager=_datamanager(1024),
-            model=SeathruModelConfig(
-                eval_num_rays_per_chunk=1 << 13,
-                average_init_density=0.01,
-                implementation="torch",
-                num_proposal_samples_per_ray=(64, 32),
-                num_nerf_samples_per_ray=32,
-                log2_hashmap_size=15,
-                num_levels=8,
-                max_res=1024,
-                proposal_warmup=iterations // 3,
-                medium_num_layers=2,
-                medium_hidden_dim=64,
-                medium_first_steps=MEDIUM_FIRST_STEPS,
-            ),
-        ),
-        optimizers=_optimizers(iterations * 4),
-        viewer=ViewerConfig(num_rays_per_chunk=1 << 13, websocket_host=LOOPBACK),
-        vis="viewer",
     )
 
 
