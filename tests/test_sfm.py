@@ -11,8 +11,8 @@ import cv2  # before pycolmap (see seathru_nerfstudio/data/sfm.py)
 import numpy as np
 import pytest
 
+from seathru_nerfstudio.data.io import write_png16
 from seathru_nerfstudio.data.process import ProcessReport, ProcessSeathruData, process
-from seathru_nerfstudio.data.raw import write_linear_png
 from seathru_nerfstudio.data.sfm import display_transform
 from seathru_nerfstudio.data.synthetic import SynthConfig, generate
 
@@ -48,7 +48,7 @@ def sfm_run(tmp_path_factory) -> tuple[Path, Path, ProcessReport, dict[str, str]
     rng = np.random.default_rng(0)
     for name in DISTRACTORS:  # a blurred-noise texture seen nowhere else
         noise = cv2.GaussianBlur(rng.uniform(0, 0.4, (240, 320, 3)).astype(np.float32), (0, 0), 2.0)
-        write_linear_png(scene / "images" / name, noise)
+        write_png16(scene / "images" / name, noise)
     inputs = scene / "images"
     before = {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in inputs.iterdir()}
     report = process(ProcessSeathruData(data=inputs, output_dir=root / "dataset"))

@@ -12,7 +12,8 @@ import cv2
 import numpy as np
 import pytest
 
-from seathru_nerfstudio.data.synthetic import GROUND_Y, PRESETS, WALL_Z, SynthConfig, apply_medium, generate
+from seathru_nerfstudio.data.io import OutputFolderError
+from seathru_nerfstudio.data.synthetic import GROUND_Y, PRESETS, WALL_Z, SynthConfig, SynthError, apply_medium, generate
 
 W, H, N = 48, 36, 7
 Q = 1.0 / 65535.0  # one 16-bit quantisation step
@@ -240,9 +241,9 @@ def test_refuses_non_empty_output_dir(tmp_path: Path):
     out = tmp_path / "busy"
     out.mkdir()
     (out / "keep.txt").write_text("mine")
-    with pytest.raises(SystemExit) as exc:
+    with pytest.raises(OutputFolderError, match="--overwrite") as exc:
         generate(SynthConfig(output_dir=out, width=16, height=12, num_views=2))
-    assert str(out) in str(exc.value.code)
+    assert str(out) in str(exc.value)
     assert [p.name for p in out.iterdir()] == ["keep.txt"]
     assert sorted(p.name for p in tmp_path.iterdir()) == ["busy"], "temporary folder left behind"
     # an existing empty folder is fine
@@ -274,7 +275,7 @@ def test_cli(tmp_path: Path):
     assert _read_rgb16(out / "images" / "frame_00003.png").shape == (24, 32, 3)
     # same call again: folder is now non-empty -> refused, naming the folder
     res = subprocess.run(args, capture_output=True, text=True, timeout=120)
-    assert res.returncode != 0 and str(out) in res.stderr.replace("\n", "")
+    assert res.returncode == 1 and str(out) in (res.stdout + res.stderr).replace("\n", "")
     # bad calls
     for bad in (
         [exe],  # missing --output-dir
@@ -311,3 +312,23 @@ def test_turbid_preset_is_deeper_greener_and_follows_the_model(tmp_path: Path):
     assert np.argmax(PRESETS["turbid"]["B_inf"]) == 1  # green water, unlike water's blue
     expected = apply_medium(J, z, med["beta_D"], med["beta_B"], med["B_inf"])
     np.testing.assert_allclose(I, expected, atol=2e-5)
+
+
+def test_bad_options_are_refused_before_anything_is_written(tmp_path: Path):
+    for bad in ({"num_views": 1}, {"width": 4}, {"supersample": 0}):
+        with pytest.raises(SynthError):
+            generate(SynthConfig(output_dir=tmp_path / "x", **bad))
+    assert not any(tmp_path.iterdir())
+
+
+def test_scaled_wall_is_the_same_wall_farther_away():
+    """The turbid preset scales the scene about the rig: the wall's tabulated top edge (built
+    when the wall is) must scale with it."""
+    from seathru_nerfstudio.data.synthetic.scene import Wall, build_scene
+
+    wall = build_scene(np.random.default_rng(0)).prims[0]
+    assert isinstance(wall, Wall)
+    x = wall.top_x[::2]  # knots of the wall whose 3.5x are knots of the scaled wall
+    far = wall.scaled(3.5)
+    np.testing.assert_allclose(far.top(3.5 * x), 3.5 * wall.top(x), rtol=0, atol=1e-9)
+    assert np.ptp(wall.top(x)) > 0.05  # an irregular edge, not a straight one

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import shutil
 import sys
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -28,6 +27,7 @@ import numpy as np
 import tyro
 
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress
+from seathru_nerfstudio.data.io import OutputFolderError, atomic_output_folder, check_output_folder, to_uint16, write_png16
 from seathru_nerfstudio.data.raw import (
     LINEAR_EXTENSIONS,
     RAW_EXTENSIONS,
@@ -40,10 +40,9 @@ from seathru_nerfstudio.data.raw import (
     image_sizes_summary,
     is_raw,
     read_input_image,
-    to_uint16,
-    write_linear_png,
 )
 from seathru_nerfstudio.data.sfm import MatchingMethod, SfmError, SfmResult, report, run_sfm, write_display_copy, write_outputs
+from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 
 class ProcessDataError(RuntimeError):
@@ -124,29 +123,12 @@ def _check_output(output_dir: Path, data: Path, overwrite: bool) -> None:
     out, src = output_dir.resolve(), data.resolve()
     if out == src or out in src.parents:
         raise ProcessDataError(f"--output-dir {output_dir} would contain the input folder {data}; pick another folder")
-    if output_dir.exists() and not output_dir.is_dir():
-        raise ProcessDataError(f"--output-dir {output_dir} exists and is not a folder")
-    if output_dir.is_dir() and any(output_dir.iterdir()) and not overwrite:
-        raise ProcessDataError(
-            f"{output_dir} already holds files (a previous run?). Pass --overwrite to replace it, "
-            "or choose another --output-dir"
-        )
-
-
-def _publish(build_dir: Path, output_dir: Path) -> None:
-    """Move the finished ``build_dir`` to ``output_dir``, replacing what was there."""
-    old = None
-    if output_dir.exists():
-        old = output_dir.with_name(f".{output_dir.name}.old-{build_dir.name.rsplit('-', 1)[-1]}")
-        output_dir.rename(old)
-    build_dir.rename(output_dir)
-    if old is not None:
-        shutil.rmtree(old)
+    check_output_folder(output_dir, overwrite)
 
 
 def process(config: ProcessSeathruData) -> ProcessReport:
-    """Run the whole pipeline; raises :class:`ProcessDataError` / ``SfmError`` with nothing
-    written when it cannot produce a dataset."""
+    """Run the whole pipeline; raises :class:`ProcessDataError`, ``SfmError`` or
+    ``OutputFolderError`` with nothing written when it cannot produce a dataset."""
     if not 0.0 <= config.clip_percent < 50.0:
         raise ProcessDataError(f"--clip-percent must be in [0, 50), got {config.clip_percent}")
     if config.max_long_side is not None and config.max_long_side < 16:
@@ -155,15 +137,9 @@ def process(config: ProcessSeathruData) -> ProcessReport:
     _check_output(config.output_dir, config.data, config.overwrite)
     if config.white_balance == "camera" and not is_raw(captures[0]):
         raise ProcessDataError("--white-balance camera needs RAW files (TIFF/PNG carry no as-shot multipliers)")
-    config.output_dir.parent.mkdir(parents=True, exist_ok=True)
-    build = Path(tempfile.mkdtemp(prefix=f".{config.output_dir.name}.partial-", dir=config.output_dir.parent))
-    try:
+    with atomic_output_folder(config.output_dir, config.overwrite) as build:
         report_ = _build(config, captures, build)
         shutil.rmtree(build / "_work")
-        _publish(build, config.output_dir)
-    except BaseException:
-        shutil.rmtree(build, ignore_errors=True)
-        raise
     CONSOLE.print(f"[bold green]Done: {len(report_.images)} linear 16-bit images in {config.output_dir / 'images'}")
     return report_
 
@@ -214,7 +190,7 @@ def _build(config: ProcessSeathruData, captures: list[Path], build: Path) -> Pro
             image = np.load(decoded_dir / f"{source.stem}.npy").astype(np.float32) / 65535.0
             image = white_balance.apply(image)
             name = f"{source.stem}.png"
-            write_linear_png(build / "images" / name, image)
+            write_png16(build / "images" / name, image)
             if not config.skip_sfm:
                 write_display_copy(display_dir / name, image)
             names.append(name)
@@ -235,10 +211,11 @@ def _build(config: ProcessSeathruData, captures: list[Path], build: Path) -> Pro
 
 def entrypoint() -> None:
     """Console script: exit status 1 with a one-line reason on bad input."""
+    silence_upstream_warnings()
     config = tyro.cli(ProcessSeathruData)
     try:
         config.main()
-    except (ProcessDataError, SfmError) as error:
+    except (ProcessDataError, SfmError, OutputFolderError) as error:
         CONSOLE.print(f"[bold red]Error: {error}")
         sys.exit(1)
 

@@ -30,6 +30,8 @@ import numpy as np
 import numpy.typing as npt
 import rawpy
 
+from seathru_nerfstudio.data.io import to_uint16
+
 # linear_images (and with it torch + nerfstudio) is imported only when a TIFF/PNG is read,
 # so seathru-process-data starts, answers --help and rejects bad input in about a second.
 
@@ -114,18 +116,6 @@ def downscale_to_long_side(image: npt.NDArray[np.float32], max_long_side: int | 
     scale = max_long_side / max(height, width)
     size = (max(1, round(width * scale)), max(1, round(height * scale)))
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-
-
-def to_uint16(image: npt.NDArray[np.floating]) -> npt.NDArray[np.uint16]:
-    """Quantise linear [0, 1] values to 16-bit code values (round to nearest)."""
-    return np.round(np.clip(image, 0.0, 1.0) * 65535.0).astype(np.uint16)
-
-
-def write_linear_png(path: Path, image: npt.NDArray[np.floating]) -> None:
-    """Write linear RGB [0, 1] as a 16-bit PNG (no gamma, no sRGB chunk)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), to_uint16(image)[..., ::-1], [cv2.IMWRITE_PNG_COMPRESSION, 3]):
-        raise OSError(f"{path}: could not write image")
 
 
 class ChannelHistogram:
