@@ -1,17 +1,21 @@
-"""Image and depth metrics, with LPIPS only when its weights are already on disk."""
+"""Evaluation metrics, written once: ``SeathruModel.get_image_metrics_and_images`` (``ns-eval``,
+the evaluations while training) and ``seathru-bench`` (``bench/scoring.py``) both score a view
+with :func:`view_metrics`. LPIPS only when its weights are already on disk.
+"""
 
 from __future__ import annotations
 
+import importlib
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable, Dict, Iterator, Mapping, Optional
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
+from torchmetrics.functional import structural_similarity_index_measure
 from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
-
-_LPIPS = LearnedPerceptualImagePatchSimilarity  # bound now: models patch the module attribute
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint that torchmetrics' LPIPS loads (from the torch hub cache)."""
@@ -31,7 +35,7 @@ def make_lpips(**kwargs) -> Optional[Callable]:
     global _warned
     path = lpips_weights_path()
     if path.is_file():
-        return _LPIPS(**kwargs)
+        return LearnedPerceptualImagePatchSimilarity(**kwargs)
     if not _warned:
         warnings.warn(
             f"LPIPS disabled: AlexNet weights not found at {path} and nothing will be downloaded. "
@@ -40,6 +44,35 @@ def make_lpips(**kwargs) -> Optional[Callable]:
         )
         _warned = True
     return None
+
+
+@contextmanager
+def offline_lpips() -> Iterator[None]:
+    """Build nerfstudio models inside this block: their LPIPS comes from :func:`make_lpips`.
+
+    nerfacto's ``populate_modules`` looks up ``LearnedPerceptualImagePatchSimilarity`` in
+    ``torchmetrics.image.lpip`` and constructs it unconditionally, which downloads AlexNet (and
+    crashes offline). It has no option to skip that, so for the duration of the block, and only
+    then, that one name is :func:`make_lpips`; it is restored on exit, also on error. Used around
+    model construction by ``SeathruModel`` and by the benchmark (for nerfacto).
+    """
+    module = importlib.import_module("torchmetrics.image.lpip")
+    original = module.LearnedPerceptualImagePatchSimilarity
+    module.LearnedPerceptualImagePatchSimilarity = make_lpips
+    try:
+        yield
+    finally:
+        module.LearnedPerceptualImagePatchSimilarity = original
+
+
+def nchw(image: Float[Tensor, "H W C"]) -> Float[Tensor, "1 C H W"]:
+    """An ``[H, W, C]`` image as the ``[1, C, H, W]`` batch torchmetrics takes."""
+    return torch.moveaxis(image.float(), -1, 0)[None]
+
+
+def ssim(pred: Float[Tensor, "H W 3"], target: Float[Tensor, "H W 3"]) -> float:
+    """SSIM of two images with data range 1 (torchmetrics, as nerfacto)."""
+    return float(structural_similarity_index_measure(nchw(pred), nchw(target), data_range=1.0))
 
 
 def psnr(pred: Float[Tensor, "*batch 3"], target: Float[Tensor, "*batch 3"]) -> float:
@@ -68,3 +101,60 @@ def far_third_mask(target: Float[Tensor, "*batch 1"]) -> Tensor:
         return valid
     threshold = torch.quantile(target[valid].float(), 2.0 / 3.0)
     return valid & (target >= threshold)
+
+
+def view_metrics(
+    outputs: Mapping[str, Tensor],
+    gt_rgb: Float[Tensor, "H W 3"],
+    gt_clean: Optional[Float[Tensor, "H W 3"]] = None,
+    gt_depth: Optional[Float[Tensor, "H W 1"]] = None,
+    lpips: Optional[Callable] = None,
+) -> Dict[str, float]:
+    """Every metric of one rendered view (``outputs``: a camera render's linear ``[H, W, C]`` maps).
+
+    * ``psnr``, ``ssim`` (and ``lpips`` when given) of ``rgb`` against the image in the medium;
+    * with ``gt_depth`` (range, same units as ``depth``; ``inf`` for open water): ``depth_abs_rel``,
+      its far third ``depth_abs_rel_far``, the median ``depth_abs_rel_median`` (robust to the few
+      empty rays whose depth is the far plane), and the mean object opacity on object rays
+      (``object_accumulation``) and on open water (``open_water_accumulation``, which must stay 0);
+    * with ``gt_clean`` and a ``clean`` output: ``clean_psnr``, ``clean_ssim``, on object pixels only
+      when ``gt_depth`` says where open water is (it has no clean colour);
+    * ``mean_backscatter`` when there is a ``backscatter`` output.
+
+    Abs-rel errors are ratios, so they do not depend on the depth unit.
+    """
+    rgb = outputs["rgb"].float().clamp(0.0, 1.0)
+    gt_rgb = gt_rgb[..., :3].float()
+    result: Dict[str, float] = {"psnr": psnr(rgb, gt_rgb), "ssim": ssim(rgb, gt_rgb)}
+    if lpips is not None:
+        result["lpips"] = float(lpips(nchw(gt_rgb), nchw(rgb)))
+
+    object_mask = None
+    if gt_depth is not None:
+        gt_depth = gt_depth.float()
+        depth = outputs["depth"].float()
+        object_mask = torch.isfinite(gt_depth)
+        result["depth_abs_rel"] = depth_abs_rel(depth, gt_depth)
+        result["depth_abs_rel_far"] = depth_abs_rel(depth, gt_depth, far_third_mask(gt_depth))
+        accumulation = outputs.get("accumulation")
+        if bool(object_mask.any()):
+            rel = (depth[object_mask] - gt_depth[object_mask]).abs() / gt_depth[object_mask]
+            result["depth_abs_rel_median"] = float(rel.contiguous().median())
+            if accumulation is not None:
+                result["object_accumulation"] = float(accumulation.float()[object_mask].mean())
+        if accumulation is not None and bool((~object_mask).any()):
+            result["open_water_accumulation"] = float(accumulation.float()[~object_mask].mean())
+
+    if gt_clean is not None and "clean" in outputs:
+        gt_clean = gt_clean[..., :3].float()
+        clean = outputs["clean"].float().clamp(0.0, 1.0)
+        if object_mask is not None:
+            objects = object_mask.expand_as(clean)
+            result["clean_psnr"] = psnr(clean[objects], gt_clean[objects])
+            result["clean_ssim"] = ssim(torch.where(objects, clean, gt_clean), gt_clean)
+        else:
+            result["clean_psnr"] = psnr(clean, gt_clean)
+            result["clean_ssim"] = ssim(clean, gt_clean)
+    if "backscatter" in outputs:
+        result["mean_backscatter"] = float(outputs["backscatter"].float().mean())
+    return result

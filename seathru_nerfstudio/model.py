@@ -8,7 +8,6 @@ import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type
-from unittest import mock
 
 import torch
 from torch.nn import Parameter
@@ -28,12 +27,6 @@ from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import FixedMedium, MediumField, MediumOutputs, SceneMedium
 from seathru_nerfstudio.rendering import Quadrature, render_seathru
-
-IMAGE_OUTPUTS = ("rgb", "clean", "direct", "backscatter")
-"""Linear-radiance outputs (what the viewer's display transform applies to)."""
-MEDIUM_OUTPUTS = ("medium_rgb", "medium_attenuation", "medium_backscatter")
-"""Per-ray maps of ``c_med``, ``sigma_attn`` and ``sigma_bs`` (densities per scene unit)."""
-
 
 @dataclass
 class SeathruModelConfig(NerfactoModelConfig):
@@ -107,6 +100,18 @@ class SeathruModelConfig(NerfactoModelConfig):
     background_color: Literal["random", "last_sample", "black", "white"] = "black"
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
 
+    def __post_init__(self) -> None:
+        self.check()
+
+    def check(self) -> None:
+        """Refuse settings this model cannot train with, at once and saying why (also called when
+        the model is built, for configs changed after construction)."""
+        if self.predict_normals:
+            raise ValueError(
+                "seathru: predict_normals=True is not supported: SeathruModel renders no normals, so "
+                "nerfacto's normal losses would have nothing to read. Leave --pipeline.model.predict-normals False."
+            )
+
 
 class SeathruModel(NerfactoModel):
     """nerfacto's object field rendered through a scattering medium (Levy et al. 2023)."""
@@ -114,8 +119,9 @@ class SeathruModel(NerfactoModel):
     config: SeathruModelConfig
 
     def populate_modules(self) -> None:
+        self.config.check()
         # nerfacto builds LPIPS here, which downloads AlexNet: build it only if it is on disk.
-        with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", metrics.make_lpips):
+        with metrics.offline_lpips():
             super().populate_modules()
         self.train_step: Optional[int] = None
         """The trainer's step while training (a callback sets it); None in a loaded model."""
@@ -135,8 +141,11 @@ class SeathruModel(NerfactoModel):
             if self.config.far_bound_margin > 0 and "far_plane" in metadata:
                 far = self.config.far_bound_margin * float(metadata["far_plane"])
             self.collider = NearFarCollider(near_plane=0.9 * float(metadata["near_plane"]), far_plane=far)
-        # Viewer controls and display transform (no parameters; never applied in training).
+        # Viewer controls (no parameters; never applied in training).
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
+        self.medium_controls_enabled = True
+        """Renders outside training take the viewer's water density and veiling light (identity at
+        their defaults); SeathruPipeline turns this off while it evaluates."""
 
     def _build_medium(self):
         if self.config.medium_oracle is not None:
@@ -235,7 +244,8 @@ class SeathruModel(NerfactoModel):
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         medium = self.medium_field(ray_bundle.directions)  # once per ray
-        medium = viewer.override_medium(self, medium)  # identity unless a viewer/ns-render render
+        if not self.training and self.medium_controls_enabled:
+            medium = self.viewer_controls.medium(medium)  # the viewer's water density and colour
         if self.object_frozen:
             # An empty scene shows exactly c_med on every ray, whatever the densities: keep round-off
             # gradients (which Adam would scale up to full steps) off them.
@@ -280,9 +290,14 @@ class SeathruModel(NerfactoModel):
             outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
         return outputs
 
+    @torch.no_grad()
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
-        # Whole-image renders outside training and evaluation are for display (viewer, ns-render).
-        return viewer.render_camera(self, camera_ray_bundle, super().get_outputs_for_camera_ray_bundle)
+        """nerfstudio's whole-image render, plus (outside training) the display outputs of
+        :mod:`seathru_nerfstudio.viewer` first: nerfstudio's viewer opens on the first output."""
+        outputs = super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)
+        if self.training:
+            return outputs
+        return {**self.viewer_controls.display_outputs(outputs), **outputs}
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         metrics_dict = super().get_metrics_dict(outputs, batch)
@@ -354,36 +369,10 @@ class SeathruModel(NerfactoModel):
     def get_image_metrics_and_images(
         self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]
     ) -> Tuple[Dict[str, float], Dict[str, torch.Tensor]]:
-        outputs = viewer.linear_view(outputs)  # metrics never see display values
         gt_rgb = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         predicted_rgb = outputs["rgb"].clamp(0.0, 1.0)
-        metrics_dict: Dict[str, float] = {
-            "psnr": metrics.psnr(predicted_rgb, gt_rgb),
-            "ssim": _ssim(predicted_rgb, gt_rgb),
-        }
-        if self.lpips is not None:
-            metrics_dict["lpips"] = float(self.lpips(_nchw(gt_rgb), _nchw(predicted_rgb)))
-
-        gt_depth = batch.get("gt_depth")
-        object_mask = None
-        if gt_depth is not None:
-            gt_depth = gt_depth.to(self.device)
-            object_mask = torch.isfinite(gt_depth)
-            metrics_dict["depth_abs_rel"] = metrics.depth_abs_rel(outputs["depth"], gt_depth)
-            metrics_dict["depth_abs_rel_far"] = metrics.depth_abs_rel(
-                outputs["depth"], gt_depth, metrics.far_third_mask(gt_depth)
-            )
-        if "gt_clean" in batch:
-            gt_clean = batch["gt_clean"].to(self.device)
-            clean = outputs["clean"].clamp(0.0, 1.0)
-            if object_mask is not None:  # open water has no clean colour: compare objects only
-                mask3 = object_mask.expand_as(clean)
-                metrics_dict["clean_psnr"] = metrics.psnr(clean[mask3], gt_clean[mask3])
-                clean_for_ssim = torch.where(mask3, clean, gt_clean)
-            else:
-                metrics_dict["clean_psnr"] = metrics.psnr(clean, gt_clean)
-                clean_for_ssim = clean
-            metrics_dict["clean_ssim"] = _ssim(clean_for_ssim, gt_clean)
+        truth = {key: batch[key].to(self.device) for key in ("gt_clean", "gt_depth") if key in batch}
+        metrics_dict = metrics.view_metrics(outputs, gt_rgb, lpips=self.lpips, **truth)
 
         depth = colormaps.apply_depth_colormap(outputs["depth"], accumulation=outputs["accumulation"])
         images_dict = {
@@ -412,12 +401,3 @@ class FixedDirectionEncoding(torch.nn.Module):
         fixed[..., 2] = 1.0
         return self.encoding(fixed).expand(directions.shape[0], -1)
 
-
-def _nchw(image: torch.Tensor) -> torch.Tensor:
-    return torch.moveaxis(image, -1, 0)[None, ...]
-
-
-def _ssim(pred: torch.Tensor, target: torch.Tensor) -> float:
-    from torchmetrics.functional import structural_similarity_index_measure
-
-    return float(structural_similarity_index_measure(_nchw(pred), _nchw(target), data_range=1.0))

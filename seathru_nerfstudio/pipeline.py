@@ -1,32 +1,34 @@
-"""nerfstudio's vanilla pipeline, with evaluation always on linear outputs.
+"""nerfstudio's vanilla pipeline whose evaluations measure the trained medium.
 
-Camera renders of a SeaThru model outside training are display renders
-(:mod:`seathru_nerfstudio.viewer`: viewer overrides, exposure, sRGB), which is what the viewer
-and ``ns-render`` need. Metrics must not see that: every evaluation entry point here runs
-inside :func:`seathru_nerfstudio.viewer.linear_outputs`, so ``ns-eval`` and the evaluations
-during ``ns-train`` measure the trained model's plain linear outputs, whatever the viewer's
-controls are set to.
+The viewer's water controls (density scale, veiling light) change the medium of every render
+outside training (:mod:`seathru_nerfstudio.viewer`). While this pipeline evaluates (``ns-eval``,
+the evaluations during ``ns-train``) it switches them off with the model's plain flag
+``medium_controls_enabled``; nerfstudio's ``train_lock`` keeps the viewer's renders out of that
+time. Metrics read the linear outputs (``rgb``, ``clean``, ...), never the display ones.
+
+Also the class that saved configs (``config.yml``) name, and the base of the multi-process
+pipeline in :mod:`seathru_nerfstudio.distributed`.
 """
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, field
-from typing import Any, Literal, Optional, Type
+from typing import Any, Iterator, Literal, Optional, Type
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
-
-from seathru_nerfstudio import viewer
 
 
 @dataclass
 class SeathruPipelineConfig(VanillaPipelineConfig):
-    """VanillaPipelineConfig whose evaluations use linear outputs."""
+    """VanillaPipelineConfig whose evaluations ignore the viewer's water controls."""
 
     _target: Type = field(default_factory=lambda: SeathruPipeline)
 
 
 class SeathruPipeline(VanillaPipeline):
-    """VanillaPipeline; evaluations on linear outputs, viewer controls in a ``seathru`` folder."""
+    """VanillaPipeline; evaluations without the viewer's water controls, which it shows in a
+    ``seathru`` folder."""
 
     def __init__(
         self,
@@ -38,20 +40,29 @@ class SeathruPipeline(VanillaPipeline):
         grad_scaler: Optional[Any] = None,
     ):
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
-        controls = viewer.controls_of(self.model)
-        if controls is not None:
-            # The viewer lists elements under their shortest attribute path: this puts the
-            # controls in "Custom Elements/seathru" rather than ".../model/viewer_controls".
-            self.seathru = controls
+        # The viewer lists elements under their shortest attribute path: this puts the controls
+        # in "Custom Elements/seathru" rather than ".../model/viewer_controls".
+        self.seathru = self.model.viewer_controls
+
+    @contextmanager
+    def trained_medium(self) -> Iterator[None]:
+        """Within this block, renders use the trained medium, whatever the viewer's controls say."""
+        model = self.model
+        previous = model.medium_controls_enabled
+        model.medium_controls_enabled = False
+        try:
+            yield
+        finally:
+            model.medium_controls_enabled = previous
 
     def get_eval_loss_dict(self, step: int):
-        with viewer.linear_outputs():
+        with self.trained_medium():
             return super().get_eval_loss_dict(step)
 
     def get_eval_image_metrics_and_images(self, step: int):
-        with viewer.linear_outputs():
+        with self.trained_medium():
             return super().get_eval_image_metrics_and_images(step)
 
     def get_average_image_metrics(self, *args, **kwargs):
-        with viewer.linear_outputs():
+        with self.trained_medium():
             return super().get_average_image_metrics(*args, **kwargs)

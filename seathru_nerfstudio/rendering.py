@@ -131,7 +131,7 @@ def render_seathru(
     """
     if quadrature not in ("analytic", "paper"):
         raise ValueError(f"unknown quadrature {quadrature!r}; expected 'analytic' or 'paper'")
-    dtype = torch.promote_types(object_rgb.dtype, torch.float32)  # float32, or float64 in
+    dtype = torch.promote_types(object_rgb.dtype, torch.float32)  # float32, or float64 for float64 inputs
     with torch.autocast(device_type=object_rgb.device.type, enabled=False):
         c_obj = object_rgb.to(dtype)
         sigma_obj = object_density.to(dtype).clamp(0.0, SIGMA_MAX)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -14,7 +15,7 @@ import torch
 
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.bench import report, scoring
-from seathru_nerfstudio.bench.methods import apply_overrides, build_config, matched_nerfacto_config, parse_spec
+from seathru_nerfstudio.bench.methods import MethodSpecError, build_config, matched_nerfacto_config, override_flags, parse_spec
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -88,18 +89,39 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
     gt_clean = torch.full((h, w, 3), 0.6)
     depth = torch.full((h, w, 1), 2.0)
     depth[:4] = float("inf")  # open water rows: no clean colour, no depth
-    scale = 0.5
-    batch = {"image": gt, "gt_clean": gt_clean, "gt_depth": depth * scale}
-    outputs = {"rgb": gt + 0.1, "depth": depth.clamp_max(5) * scale * 1.5}
-    m = scoring.view_metrics(outputs, batch, dataparser_scale=scale)
+    batch = {"image": gt, "gt_clean": gt_clean, "gt_depth": depth}
+    outputs = {"rgb": gt + 0.1, "depth": depth.clamp_max(5) * 1.5}
+    m = scoring.view_metrics(outputs, batch)
     assert m["psnr"] == pytest.approx(20.0, abs=1e-3)
     assert m["clean_psnr"] == pytest.approx(-10 * math.log10(0.2**2), abs=1e-3)  # rgb 0.4 vs 0.6
     assert m["depth_abs_rel"] == pytest.approx(0.5, abs=1e-6)
     assert m["depth_abs_rel_far"] == pytest.approx(0.5, abs=1e-6)
-    assert "mean_backscatter" not in m
-    outputs.update(clean=gt_clean.clone(), backscatter=torch.full((h, w, 3), 0.02))
-    m = scoring.view_metrics(outputs, batch, dataparser_scale=scale)
+    assert m["depth_abs_rel_median"] == pytest.approx(0.5, abs=1e-6)
+    assert "mean_backscatter" not in m and "object_accumulation" not in m
+    accumulation = torch.ones(h, w, 1)
+    accumulation[:4] = 0.25  # a haze of opacity over the open water
+    outputs.update(clean=gt_clean.clone(), backscatter=torch.full((h, w, 3), 0.02), accumulation=accumulation)
+    m = scoring.view_metrics(outputs, batch)
     assert m["clean_psnr"] >= 190 and m["mean_backscatter"] == pytest.approx(0.02)
+    assert m["object_accumulation"] == pytest.approx(1.0) and m["open_water_accumulation"] == pytest.approx(0.25)
+
+
+def test_model_and_bench_score_a_view_with_the_same_code():
+    """ns-eval (SeathruModel.get_image_metrics_and_images) and the benchmark report the same numbers."""
+    from tiny_training import tiny_model
+
+    gen = torch.Generator().manual_seed(0)
+    h, w = 16, 20
+    depth = 1.0 + torch.rand(h, w, 1, generator=gen)
+    gt_depth = depth * (1 + 0.2 * torch.rand(h, w, 1, generator=gen))
+    gt_depth[:3] = float("inf")
+    outputs = {k: torch.rand(h, w, 3, generator=gen) for k in ("rgb", "clean", "backscatter")}
+    outputs.update(depth=depth, accumulation=torch.rand(h, w, 1, generator=gen))
+    batch = {k: torch.rand(h, w, 3, generator=gen) for k in ("image", "gt_clean")}
+    batch["gt_depth"] = gt_depth
+    model_scores, _ = tiny_model().get_image_metrics_and_images(outputs, batch)
+    assert model_scores == scoring.view_metrics(outputs, batch)
+    assert {"psnr", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel", "depth_abs_rel_median"} <= set(model_scores)
 
 
 def test_mean_metrics_skips_nan_and_log_spaced_ends_at_budget():
@@ -112,23 +134,76 @@ def test_mean_metrics_skips_nan_and_log_spaced_ends_at_budget():
 # ---------------------------------------------------------------- methods
 
 
-def test_method_spec_overrides():
+def test_method_spec_overrides_become_ns_train_flags():
     assert parse_spec("seathru-nerf-lite:quadrature=paper,medium_model=basic") == (
         "seathru-nerf-lite",
         {"quadrature": "paper", "medium_model": "basic"},
     )
-    config = build_config("seathru-nerf-lite:quadrature=paper,num_nerf_samples_per_ray=16")
-    assert config.pipeline.model.quadrature == "paper"
-    assert config.pipeline.model.num_nerf_samples_per_ray == 16
+    overrides = {
+        "object_view_dependent": "false",
+        "optimizers.medium.optimizer.lr": "0.05",
+        "num_proposal_samples_per_ray": "16|8",
+        "pipeline.datamanager.dataparser.eval_mode": "interval",
+    }
+    assert override_flags(overrides) == (
+        [
+            "--pipeline.model.object_view_dependent", "False",
+            "--optimizers.medium.optimizer.lr", "0.05",
+            "--pipeline.model.num_proposal_samples_per_ray", "16", "8",
+        ],
+        ["--eval_mode", "interval"],
+    )  # fmt: skip
+
+
+def test_method_spec_overrides_are_parsed_as_ns_train_parses_them():
+    import tyro
+    from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
+
+    spec = (
+        "seathru-nerf-lite:quadrature=paper,object_view_dependent=false,medium_oracle=/data/medium.json,"
+        "num_proposal_samples_per_ray=16|8,optimizers.medium.optimizer.lr=0.123,"
+        "pipeline.datamanager.train_num_rays_per_batch=256"
+    )
+    ours = build_config(spec)
+    flags, _ = override_flags(parse_spec(spec)[1])
+    assert ours == tyro.cli(AnnotatedBaseConfigUnion, args=["seathru-nerf-lite", *flags])  # ns-train's own parse
+    model = ours.pipeline.model
+    assert model.quadrature == "paper" and model.object_view_dependent is False
+    assert model.medium_oracle == Path("/data/medium.json") and model.num_proposal_samples_per_ray == (16, 8)
+    assert ours.optimizers["medium"]["optimizer"].lr == 0.123
+    assert ours.pipeline.datamanager.train_num_rays_per_batch == 256
+    assert build_config("seathru-nerf-lite").optimizers["medium"]["optimizer"].lr != 0.123  # a fresh config each time
+
     config = build_config("nerfacto:pipeline.datamanager.train_num_rays_per_batch=256,proposal_warmup=7")
-    assert config.pipeline.datamanager.train_num_rays_per_batch == 256
-    assert config.pipeline.model.proposal_warmup == 7
-    with pytest.raises(ValueError):
-        build_config("seathru-nerf-lite:no_such_field=1")
-    with pytest.raises(ValueError):
-        build_config("no-such-method")
-    with pytest.raises(ValueError):
-        apply_overrides(build_config("nerfacto"), {"use_appearance_embedding": "maybe"})
+    assert config.pipeline.datamanager.train_num_rays_per_batch == 256 and config.pipeline.model.proposal_warmup == 7
+    config = build_config("seathru-nerf-lite:pipeline.datamanager.dataparser.eval_mode=interval,medium_model=basic")
+    assert config.pipeline.datamanager.dataparser.eval_mode == "interval"
+    assert type(config.pipeline.datamanager.dataparser) is type(build_config("seathru-nerf-lite").pipeline.datamanager.dataparser)
+
+
+@pytest.mark.parametrize(
+    "spec, reason",
+    [
+        ("seathru-nerf-lite:no_such_field=1", "Unrecognized options: --pipeline.model.no_such_field"),
+        ("nerfacto:use_appearance_embedding=maybe", "invalid choice 'maybe'"),
+        ("seathru-nerf-lite:num_nerf_samples_per_ray=1.5", "num-nerf-samples-per-ray"),
+        ("seathru-nerf-lite:pipeline.datamanager.dataparser.no_such_field=1", "--no_such_field"),
+        ("seathru-nerf-lite:quadrature", "not key=value"),
+        ("no-such-method", "unknown method 'no-such-method'"),
+    ],
+)
+def test_bad_method_specs_name_the_problem(spec, reason):
+    with pytest.raises(MethodSpecError, match=re.escape(reason)):
+        build_config(spec)
+
+
+def test_bad_method_spec_stops_the_benchmark_before_anything_runs(tmp_path):
+    cmd = [sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run", "--scenes", str(tmp_path / "none"),
+           "--methods", "seathru-nerf-lite:no_such_field=1", "--output-dir", str(tmp_path / "bench")]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+    message = " ".join((proc.stdout + proc.stderr).split())
+    assert proc.returncode == 1 and "no_such_field" in message and "Traceback" not in message
+    assert not (tmp_path / "bench" / "runs").exists()
 
 
 def test_matched_nerfacto_has_seathru_lite_capacity():

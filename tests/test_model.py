@@ -17,6 +17,8 @@ from seathru_nerfstudio import metrics
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.model import SeathruModel, SeathruModelConfig
 
+from tiny_training import tiny_model
+
 CONTRACT = (
     "rgb",
     "clean",
@@ -30,23 +32,6 @@ CONTRACT = (
     "prop_depth_0",
     "prop_depth_1",
 )
-
-
-def tiny_model(**overrides) -> SeathruModel:
-    config = SeathruModelConfig(
-        implementation="torch",
-        num_proposal_samples_per_ray=(16, 8),
-        num_nerf_samples_per_ray=8,
-        log2_hashmap_size=10,
-        num_levels=4,
-        max_res=64,
-        proposal_net_args_list=[
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 32, "use_linear": False},
-            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 64, "use_linear": False},
-        ],
-        **overrides,
-    )
-    return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)
 
 
 def rays(num: int, seed: int = 0) -> RayBundle:
@@ -418,3 +403,88 @@ def test_medium_first_steps_do_not_freeze_the_object_field_under_a_fixed_medium(
     out = model(rays(16, seed=7))
     out["rgb"].sum().backward()
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
+
+
+def test_predict_normals_is_refused_with_a_clear_message():
+    with pytest.raises(ValueError, match="predict_normals=True is not supported"):
+        SeathruModelConfig(predict_normals=True)
+    config = tiny_model().config
+    config.predict_normals = True  # changed after construction (as overrides do): refused when built
+    with pytest.raises(ValueError, match="predict-normals False"):
+        config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)
+
+
+def test_offline_lpips_is_scoped_to_its_block():
+    import torchmetrics.image.lpip as lpip_module
+
+    original = lpip_module.LearnedPerceptualImagePatchSimilarity
+    with pytest.raises(RuntimeError):
+        with metrics.offline_lpips():
+            assert lpip_module.LearnedPerceptualImagePatchSimilarity is metrics.make_lpips
+            raise RuntimeError("model construction failed")
+    assert lpip_module.LearnedPerceptualImagePatchSimilarity is original
+
+
+def small_camera():
+    from nerfstudio.cameras.cameras import Cameras
+
+    c2w = torch.eye(4)[:3][None]
+    c2w[0, 2, 3] = 1.5  # outside the box, looking along -z into it
+    return Cameras(camera_to_worlds=c2w, fx=12.0, fy=12.0, cx=8.0, cy=6.0, width=16, height=12)
+
+
+def test_camera_renders_are_linear_and_add_named_display_outputs_first():
+    from seathru_nerfstudio.viewer import DISPLAY_OUTPUTS, linear_to_srgb
+
+    torch.manual_seed(0)
+    model = tiny_model()
+    model.eval()
+    out = model.get_outputs_for_camera(small_camera())
+    names = list(out)
+    assert tuple(names[: len(DISPLAY_OUTPUTS)]) == DISPLAY_OUTPUTS  # the viewer opens on the first: rgb_display
+    for name in CONTRACT:  # linear, as every other caller gets them
+        assert name in out, name
+    with torch.no_grad():
+        flat = model(small_camera().generate_rays(camera_indices=0).flatten())
+    torch.testing.assert_close(out["rgb"].reshape(-1, 3), flat["rgb"])
+    torch.testing.assert_close(out["rgb_display"], linear_to_srgb(out["rgb"]))  # linear data: sRGB display
+    torch.testing.assert_close(out["clean_display"], linear_to_srgb(out["clean"]))
+    attenuation = out["medium_attenuation_display"]
+    torch.testing.assert_close(attenuation, out["medium_attenuation"] / out["medium_attenuation"].max())
+
+    controls = model.viewer_controls
+    controls.c1_water.value = False  # Water off: rgb_display is the clean image, rgb stays in the water
+    controls.c5_exposure.value = 1.0
+    off = model.get_outputs_for_camera(small_camera())
+    torch.testing.assert_close(off["rgb_display"], linear_to_srgb(2 * out["clean"]))
+    torch.testing.assert_close(off["rgb"], out["rgb"])
+
+    model.train()  # training renders no display outputs
+    with torch.no_grad():
+        assert not set(DISPLAY_OUTPUTS) & set(model.get_outputs_for_camera_ray_bundle(
+            small_camera().generate_rays(camera_indices=0, keep_shape=True)))
+
+
+def test_water_controls_change_the_medium_outside_training_unless_switched_off():
+    torch.manual_seed(0)
+    model = tiny_model()
+    controls = model.viewer_controls
+    bundle = rays(16, seed=8)
+    model.eval()
+    with torch.no_grad():
+        trained = model(bundle)
+        controls.c2_density.value = 0.0
+        controls.c3_veil_override.value = True
+        controls.c4_veil_rgb.value = (255, 0, 0)
+        clear = model(bundle)
+        model.medium_controls_enabled = False  # what SeathruPipeline does while it evaluates
+        evaluated = model(bundle)
+        model.medium_controls_enabled = True
+        model.train()
+        training = model(bundle)
+    torch.testing.assert_close(clear["rgb"], clear["clean"])  # density 0: no water at all
+    torch.testing.assert_close(clear["medium_rgb"], torch.tensor([[1.0, 0.0, 0.0]]).expand(16, 3))
+    for name in ("rgb", "medium_rgb", "medium_attenuation"):
+        assert torch.equal(evaluated[name], trained[name]), name
+    for name in ("medium_rgb", "medium_attenuation", "medium_backscatter"):  # (training jitters the samples)
+        assert torch.equal(training[name], trained[name]), name  # training never sees the controls

@@ -1,5 +1,5 @@
-"""Shared by the training-robustness tests: a tiny scene and a tiny ``seathru-nerf-lite`` config,
-so each training in them takes seconds on a loaded 2-core CPU."""
+"""Tiny things the tests share: a tiny scene, a tiny ``seathru-nerf-lite`` config (each training
+with it takes seconds on a loaded 2-core CPU) and a tiny untrained ``SeathruModel``."""
 
 from __future__ import annotations
 
@@ -73,3 +73,27 @@ def tiny_config(scene: Path, output_dir: Path, iterations: int, **trainer_fields
             raise AttributeError(f"{type(config).__name__} has no field {key!r}")
         setattr(config, key, value)
     return config
+
+
+def tiny_model(**overrides):
+    """An untrained ``SeathruModel`` small enough to render a few hundred rays in milliseconds;
+    ``overrides`` are ``SeathruModelConfig`` fields."""
+    import torch
+    from nerfstudio.data.scene_box import SceneBox
+
+    from seathru_nerfstudio.model import SeathruModelConfig
+
+    config = SeathruModelConfig(
+        implementation="torch",
+        num_proposal_samples_per_ray=(16, 8),
+        num_nerf_samples_per_ray=8,
+        log2_hashmap_size=10,
+        num_levels=4,
+        max_res=64,
+        proposal_net_args_list=[
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 32, "use_linear": False},
+            {"hidden_dim": 8, "log2_hashmap_size": 10, "num_levels": 3, "max_res": 64, "use_linear": False},
+        ],
+        **overrides,
+    )
+    return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)

@@ -71,7 +71,7 @@ class Profile:
         if self.smooth is not None:
             density_fn, colour_fn = self.smooth
             sigma = sigma + density_fn(t)
-            rgb = np.where(self.smooth is not None, colour_fn(t), rgb)
+            rgb = colour_fn(t)  # a smooth profile has no slabs: its colour is the function's
         return sigma, rgb
 
 

@@ -136,7 +136,7 @@ def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
     cols = 3
     rows = max(1, math.ceil(len(keys) / cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4.2 * cols, 3.2 * rows), squeeze=False)
-    xlabel = "training wall time (s)" if results.get("budget_kind", "seconds") == "seconds" else "training wall time (s)"
+    xlabel = "training wall time (s)"  # also for an iteration budget: the curves compare methods by time
     for ax, (key, title, log) in zip(axes.flat, keys):
         for run in runs:
             xs = [e["train_time"] for e in run["evals"]]

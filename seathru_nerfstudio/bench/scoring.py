@@ -1,7 +1,8 @@
 """The benchmark's metrics, as pure functions of tensors (tested on known answers).
 
-Image metrics come from :mod:`seathru_nerfstudio.metrics` so that both methods are scored by
-the same code as ``SeathruModel.get_image_metrics_and_images``.
+A view's image and depth metrics are :func:`seathru_nerfstudio.metrics.view_metrics`, the code
+``SeathruModel.get_image_metrics_and_images`` uses, so both methods are scored as ``ns-eval``
+scores ours; here: the medium against its ground truth, and averages over views.
 """
 
 from __future__ import annotations
@@ -17,16 +18,6 @@ from seathru_nerfstudio import metrics
 MEDIUM_KEYS = ("beta_D", "beta_B", "B_inf")
 """Ground-truth names (``ground_truth/medium.json``), matched to the model's outputs
 ``medium_attenuation`` (sigma_attn), ``medium_backscatter`` (sigma_bs) and ``medium_rgb`` (c_med)."""
-
-
-def ssim(pred: Tensor, target: Tensor) -> float:
-    """SSIM of two ``[H, W, 3]`` images with data range 1 (torchmetrics, as the model's)."""
-    from torchmetrics.functional import structural_similarity_index_measure
-
-    def nchw(x: Tensor) -> Tensor:
-        return torch.moveaxis(x.float(), -1, 0)[None]
-
-    return float(structural_similarity_index_measure(nchw(pred), nchw(target), data_range=1.0))
 
 
 def medium_per_metre(
@@ -75,58 +66,19 @@ def medium_error(
 
 
 def view_metrics(
-    outputs: Mapping[str, Tensor],
-    batch: Mapping[str, Tensor],
-    dataparser_scale: float,
-    lpips: Optional[Callable] = None,
+    outputs: Mapping[str, Tensor], batch: Mapping[str, Tensor], lpips: Optional[Callable] = None
 ) -> Dict[str, float]:
-    """Metrics of one held-out view. ``outputs``: the model's ``[H, W, C]`` maps; ``batch``:
-    ``image`` and, when the scene has ground truth, ``gt_clean`` and ``gt_depth`` (scene units).
+    """Metrics of one held-out view (:func:`seathru_nerfstudio.metrics.view_metrics`, as
+    ``ns-eval`` computes them). ``outputs``: the model's ``[H, W, C]`` maps; ``batch``: ``image``
+    and, when the scene has ground truth, ``gt_clean`` and ``gt_depth``.
 
     A model without a ``clean`` output (nerfacto) is scored on its ``rgb`` as its clean image.
-    Depths are converted to metres (divided by the dataparser scale) before the abs-rel, which
-    does not change it (it is a ratio) but keeps every number in the record metric.
     """
-    gt = batch["image"][..., :3].float()
-    rgb = outputs["rgb"].float().clamp(0.0, 1.0)
-    result: Dict[str, float] = {"psnr": metrics.psnr(rgb, gt), "ssim": ssim(rgb, gt)}
-    if lpips is not None:
-        def nchw(x: Tensor) -> Tensor:
-            return torch.moveaxis(x, -1, 0)[None]
-
-        result["lpips"] = float(lpips(nchw(gt), nchw(rgb)))
-
-    object_mask = None
-    gt_depth = batch.get("gt_depth")
-    if gt_depth is not None:
-        gt_m = gt_depth.float() / dataparser_scale
-        pred_m = outputs["depth"].float() / dataparser_scale
-        object_mask = torch.isfinite(gt_m)
-        result["depth_abs_rel"] = metrics.depth_abs_rel(pred_m, gt_m)
-        result["depth_abs_rel_far"] = metrics.depth_abs_rel(pred_m, gt_m, metrics.far_third_mask(gt_m))
-        if bool(object_mask.any()):
-            # robust to the few empty rays whose median depth is the far plane
-            rel = (pred_m[object_mask] - gt_m[object_mask]).abs() / gt_m[object_mask]
-            result["depth_abs_rel_median"] = float(rel.float().contiguous().median())
-            if "accumulation" in outputs:
-                result["object_accumulation"] = float(outputs["accumulation"].float()[object_mask].mean())
-        if "accumulation" in outputs and bool((~object_mask).any()):
-            # open water must stay empty: a wall of water colour there is a broken decomposition
-            result["open_water_accumulation"] = float(outputs["accumulation"].float()[~object_mask].mean())
-    gt_clean = batch.get("gt_clean")
-    if gt_clean is not None:
-        gt_clean = gt_clean[..., :3].float()
-        clean = outputs.get("clean", outputs["rgb"]).float().clamp(0.0, 1.0)
-        if object_mask is not None:  # open water has no clean colour: objects only
-            mask3 = object_mask.expand_as(clean)
-            result["clean_psnr"] = metrics.psnr(clean[mask3], gt_clean[mask3])
-            result["clean_ssim"] = ssim(torch.where(mask3, clean, gt_clean), gt_clean)
-        else:
-            result["clean_psnr"] = metrics.psnr(clean, gt_clean)
-            result["clean_ssim"] = ssim(clean, gt_clean)
-    if "backscatter" in outputs:
-        result["mean_backscatter"] = float(outputs["backscatter"].float().mean())
-    return result
+    if "clean" not in outputs:
+        outputs = {**outputs, "clean": outputs["rgb"]}
+    return metrics.view_metrics(
+        outputs, batch["image"], gt_clean=batch.get("gt_clean"), gt_depth=batch.get("gt_depth"), lpips=lpips
+    )
 
 
 def mean_metrics(per_view: Sequence[Mapping[str, float]]) -> Dict[str, float]:

@@ -11,7 +11,6 @@ fresh interpreter and data-loader process.
 
 from __future__ import annotations
 
-import contextlib
 import json
 import math
 import platform
@@ -21,7 +20,6 @@ import sys
 import time
 from pathlib import Path
 from typing import Any, Dict, List, Optional
-from unittest import mock
 
 import numpy as np
 import torch
@@ -29,16 +27,6 @@ import torch
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.bench import scoring
 from seathru_nerfstudio.bench.methods import build_config, parse_spec
-
-
-def _linear_outputs():
-    """Camera renders of a SeathruModel may be display renders (viewer exposure, sRGB,
-    overrides); metrics must see the plain linear outputs."""
-    try:
-        from seathru_nerfstudio.viewer import linear_outputs
-    except ImportError:  # an older tree without the viewer controls
-        return contextlib.nullcontext()
-    return linear_outputs()
 
 
 def _emit(event: str, **payload: Any) -> None:
@@ -105,7 +93,8 @@ def _load_truth(scene: Path) -> Optional[Dict[str, List[float]]]:
 @torch.no_grad()
 def evaluate(pipeline, lpips, scale: float, truth) -> Dict[str, Any]:
     """Render every held-out view; image/depth metrics averaged over views, medium medians
-    over all their rays."""
+    over all their rays. Metrics read the linear outputs (``rgb``, ``clean``, ...); there is no
+    viewer here, so SeaThru's water controls are at their defaults, which change nothing."""
     model = pipeline.model
     dataset = pipeline.datamanager.eval_dataset
     model.eval()
@@ -115,9 +104,8 @@ def evaluate(pipeline, lpips, scale: float, truth) -> Dict[str, Any]:
         for i in range(len(dataset)):
             batch = dataset[i]
             camera = dataset.cameras[i : i + 1].to(model.device)
-            with _linear_outputs():
-                outputs = model.get_outputs_for_camera(camera)
-            per_view.append(scoring.view_metrics(outputs, batch, scale, lpips))
+            outputs = model.get_outputs_for_camera(camera)
+            per_view.append(scoring.view_metrics(outputs, batch, lpips))
             for key in media:
                 if key in outputs:
                     media[key].append(outputs[key].reshape(-1, 3).cpu())
@@ -162,7 +150,7 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     _seed(seed)
 
     # nerfstudio's own models build LPIPS in populate_modules, which downloads AlexNet offline.
-    with mock.patch("torchmetrics.image.lpip.LearnedPerceptualImagePatchSimilarity", metrics.make_lpips):
+    with metrics.offline_lpips():
         trainer = config.setup(local_rank=0, world_size=1)
         trainer.setup()
     lpips = metrics.make_lpips(normalize=True)
