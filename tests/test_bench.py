@@ -197,13 +197,17 @@ def test_bad_method_specs_name_the_problem(spec, reason):
         build_config(spec)
 
 
-def test_bad_method_spec_stops_the_benchmark_before_anything_runs(tmp_path):
-    cmd = [sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run", "--scenes", str(tmp_path / "none"),
-           "--methods", "seathru-nerf-lite:no_such_field=1", "--output-dir", str(tmp_path / "bench")]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
-    message = " ".join((proc.stdout + proc.stderr).split())
-    assert proc.returncode == 1 and "no_such_field" in message and "Traceback" not in message
-    assert not (tmp_path / "bench" / "runs").exists()
+def test_bad_method_spec_stops_the_benchmark_before_anything_runs(tmp_path, monkeypatch, capsys):
+    from seathru_nerfstudio.bench.cli import entrypoint
+
+    argv = ["seathru-bench", "run", "--scenes", str(tmp_path / "none"), "--methods", "seathru-nerf-lite:no_such_field=1",
+            "--output-dir", str(tmp_path / "bench")]  # fmt: skip
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit) as stop:
+        entrypoint()
+    captured = capsys.readouterr()
+    assert stop.value.code == 1 and "no_such_field" in " ".join((captured.out + captured.err).split())
+    assert not (tmp_path / "bench").exists()
 
 
 def test_matched_nerfacto_has_seathru_lite_capacity():

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional, Tuple, Union
@@ -10,7 +11,10 @@ from typing import Optional, Tuple, Union
 import tyro
 from typing_extensions import Annotated
 
+from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.bench.runner import RunConfig
+from seathru_nerfstudio.data.io import write_text_atomic
+from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 
 @dataclass
@@ -28,6 +32,7 @@ class ReportConfig:
 def entrypoint() -> None:
     from seathru_nerfstudio.bench.numerics import NumericsConfig
 
+    silence_upstream_warnings()
     command = tyro.cli(
         Union[
             Annotated[RunConfig, tyro.conf.subcommand("run", default=RunConfig())],
@@ -36,9 +41,14 @@ def entrypoint() -> None:
         ]
     )
     if isinstance(command, RunConfig):
+        from seathru_nerfstudio.bench.methods import MethodSpecError
         from seathru_nerfstudio.bench.runner import run_benchmark
 
-        run_benchmark(command)
+        try:
+            run_benchmark(command)
+        except MethodSpecError as error:
+            CONSOLE.print(f"[bold red]Error: seathru-bench: {error}")
+            sys.exit(1)
     elif isinstance(command, NumericsConfig):
         from seathru_nerfstudio.bench.numerics import run_numerics
 
@@ -52,7 +62,7 @@ def entrypoint() -> None:
         out = command.output_dir or command.results[0].parent
         if len(command.results) > 1:
             out.mkdir(parents=True, exist_ok=True)
-            (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
+            write_text_atomic(out / "results.json", json.dumps(results, indent=1, default=float))
         write_report(results, out)
 
 

@@ -4,17 +4,27 @@
 of ``seathru-nerf-lite``, see :func:`matched_nerfacto_config`) or any other method that
 nerfstudio has registered (its own config, moved to the CPU when there is no GPU).
 
-Overrides: a bare ``key`` is a field of ``pipeline.model`` (``quadrature=paper``,
-``medium_model=basic``); a dotted key is a path from the ``TrainerConfig``
-(``pipeline.datamanager.train_num_rays_per_batch=2048``). Values are parsed to the type of
-the current value (bool, int, float, str, tuples as ``a|b|c``).
+Overrides are ``ns-train`` flags in short: tyro parses them against the method's
+``TrainerConfig`` exactly as ``ns-train NAME`` parses its command line. ``key=value`` is
+``--pipeline.model.key value`` for a bare key (``quadrature=paper``) and ``--key value`` for a
+dotted path from the ``TrainerConfig`` (``pipeline.datamanager.train_num_rays_per_batch=2048``,
+dictionary keys included: ``optimizers.medium.optimizer.lr=0.05``); keys under
+``pipeline.datamanager.dataparser.`` are the dataparser's own flags (those after ns-train's
+dataparser subcommand). Values are read as ns-train reads them; ``true``/``false``/``none`` in
+any case are ``True``/``False``/``None``, and a tuple is written ``a|b|c``. ``ns-train NAME
+--help`` lists every flag.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import dataclasses
+import io
+import re
 from typing import Any, Dict, List, Tuple
+
+import tyro
 
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.nerfacto import NerfactoModelConfig
@@ -63,10 +73,17 @@ def _base_config(name: str) -> TrainerConfig:
 
     if name not in all_methods:
         known = sorted({"seathru-nerf-lite", "seathru-nerf", "nerfacto", *all_methods})
-        raise ValueError(f"unknown method {name!r}; known: {', '.join(known)}")
+        raise MethodSpecError(f"unknown method {name!r}; known: {', '.join(known)}")
     config = copy.deepcopy(all_methods[name])
     config.machine = ours._machine()
     return config
+
+
+class MethodSpecError(ValueError):
+    """A method spec names no known method, or tyro cannot parse its overrides."""
+
+
+DATAPARSER_PREFIX = "pipeline.datamanager.dataparser."
 
 
 def parse_spec(spec: str) -> Tuple[str, Dict[str, str]]:
@@ -76,67 +93,57 @@ def parse_spec(spec: str) -> Tuple[str, Dict[str, str]]:
     for item in filter(None, (part.strip() for part in rest.split(","))):
         key, eq, value = item.partition("=")
         if not eq or not key:
-            raise ValueError(f"method {spec!r}: override {item!r} is not key=value")
+            raise MethodSpecError(f"method {spec!r}: override {item!r} is not key=value")
         overrides[key.strip()] = value.strip()
     if not name:
-        raise ValueError(f"method {spec!r}: empty name")
+        raise MethodSpecError(f"method {spec!r}: empty name")
     return name, overrides
 
 
-def _convert(current: Any, text: str, where: str) -> Any:
-    if isinstance(current, bool):
-        if text.lower() in ("1", "true", "yes", "on"):
-            return True
-        if text.lower() in ("0", "false", "no", "off"):
-            return False
-        raise ValueError(f"{where}: expected a boolean, got {text!r}")
-    if isinstance(current, int):
-        return int(text)
-    if isinstance(current, float):
-        return float(text)
-    if isinstance(current, tuple):
-        items = text.split("|")
-        kind = type(current[0]) if current else str
-        return tuple(kind(x) for x in items)
-    if current is None:
-        for kind in (int, float):
-            try:
-                return kind(text)
-            except ValueError:
-                pass
-        return None if text.lower() == "none" else text
-    if isinstance(current, str):
-        return text
-    raise ValueError(f"{where}: cannot override a field of type {type(current).__name__}")
+def _flag_values(text: str) -> List[str]:
+    return [item.capitalize() if item.lower() in ("true", "false", "none") else item for item in text.split("|")]
 
 
-def apply_overrides(config: TrainerConfig, overrides: Dict[str, str]) -> List[str]:
-    """Apply ``overrides`` in place; returns them as ``path=value`` strings."""
-    applied = []
+def override_flags(overrides: Dict[str, str]) -> Tuple[List[str], List[str]]:
+    """The ns-train flags of ``overrides``: (``TrainerConfig`` flags, dataparser flags)."""
+    trainer: List[str] = []
+    dataparser: List[str] = []
     for key, text in overrides.items():
-        path = key.split(".") if "." in key else ["pipeline", "model", key]
-        target: Any = config
-        for part in path[:-1]:
-            if isinstance(target, dict) and part in target:  # e.g. optimizers.medium.optimizer.lr
-                target = target[part]
-                continue
-            if not hasattr(target, part):
-                raise ValueError(f"override {key!r}: no field {part!r}")
-            target = getattr(target, part)
-        leaf = path[-1]
-        if not dataclasses.is_dataclass(target) or leaf not in {f.name for f in dataclasses.fields(target)}:
-            raise ValueError(f"override {key!r}: {type(target).__name__} has no field {leaf!r}")
-        value = _convert(getattr(target, leaf), text, key)
-        setattr(target, leaf, value)
-        applied.append(f"{'.'.join(path)}={value!r}")
-    return applied
+        if key.startswith(DATAPARSER_PREFIX):
+            dataparser += [f"--{key[len(DATAPARSER_PREFIX):]}", *_flag_values(text)]
+        else:
+            trainer += [f"--{key if '.' in key else 'pipeline.model.' + key}", *_flag_values(text)]
+    return trainer, dataparser
+
+
+def _tyro_error(text: str) -> str:
+    """The reason in tyro's error box (the section between its first two rules), one line."""
+    sections = re.split(r"\n\s*-{10,}\s*\n", text)
+    return " ".join((sections[1] if len(sections) > 1 else text).split())
+
+
+def _parse(spec: str, name: str, default: Any, flags: List[str]) -> Any:
+    """``default`` with ``flags`` applied by tyro (ns-train's flag syntax); tyro's message, which
+    it prints before exiting, becomes a :class:`MethodSpecError`."""
+    messages = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(messages), contextlib.redirect_stderr(messages):
+            return tyro.cli(tyro.conf.FlagConversionOff[type(default)], default=default, args=flags, prog=f"ns-train {name}")
+    except SystemExit:
+        raise MethodSpecError(
+            f"method {spec!r}: {_tyro_error(messages.getvalue())} (the overrides are read as `ns-train {name}` "
+            "flags; see its --help)"
+        ) from None
 
 
 def build_config(spec: str) -> TrainerConfig:
     """The ``TrainerConfig`` of a method spec, with its overrides applied."""
     name, overrides = parse_spec(spec)
-    config = _base_config(name)
-    apply_overrides(config, overrides)
+    trainer_flags, dataparser_flags = override_flags(overrides)
+    config = _parse(spec, name, _base_config(name), trainer_flags)
+    if dataparser_flags:
+        datamanager = config.pipeline.datamanager
+        datamanager.dataparser = _parse(spec, name, datamanager.dataparser, dataparser_flags)
     return config
 
 

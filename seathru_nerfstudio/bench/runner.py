@@ -18,13 +18,14 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
-from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.bench import scoring
 from seathru_nerfstudio.bench.methods import build_config, method_label
+from seathru_nerfstudio.data.io import write_text_atomic
+from seathru_nerfstudio.quiet import child_environment
 
-CONSOLE = Console(stderr=True)
 PRESETS = ("water", "fog", "none")
 
 
@@ -123,22 +124,25 @@ class _LoadSampler(threading.Thread):
 
 
 def _launch(spec: Dict[str, Any], spec_path: Path, log_path: Path) -> subprocess.Popen:
-    spec_path.write_text(json.dumps(spec, indent=1))
-    log = open(log_path, "w")
-    return subprocess.Popen(
-        [sys.executable, "-m", "seathru_nerfstudio.bench.worker", str(spec_path)],
-        stdout=subprocess.PIPE,
-        stderr=log,
-        text=True,
-        bufsize=1,
-    )
+    """Start a worker: JSON events on its stdout (a pipe), everything else to ``log_path``, the
+    known upstream warnings filtered (:mod:`seathru_nerfstudio.quiet`)."""
+    write_text_atomic(spec_path, json.dumps(spec, indent=1))
+    with open(log_path, "w") as log:  # the child keeps its own copy of the descriptor
+        return subprocess.Popen(
+            [sys.executable, "-m", "seathru_nerfstudio.bench.worker", str(spec_path)],
+            stdout=subprocess.PIPE,
+            stderr=log,
+            text=True,
+            bufsize=1,
+            env=child_environment(os.environ),
+        )
 
 
 def run_benchmark(config: RunConfig) -> Dict[str, Any]:
+    for method in config.methods:  # fail fast on a bad method or override, before writing anything
+        build_config(method)
     out = config.output_dir
     out.mkdir(parents=True, exist_ok=True)
-    for method in config.methods:  # fail fast on a bad method or override
-        build_config(method)
     scenes = [resolve_scene(s, config) for s in config.scenes]
     if config.budget_iterations is not None:
         kind, budget = "iterations", float(config.budget_iterations)
@@ -192,24 +196,24 @@ def run_benchmark(config: RunConfig) -> Dict[str, Any]:
 
         def pump(i: int, proc: subprocess.Popen) -> None:
             assert proc.stdout is not None
-            events = open(Path(queue[i]["run_dir"]) / "events.jsonl", "w")
-            for line in proc.stdout:
-                events.write(line)
-                events.flush()
-                try:
-                    event = json.loads(line)
-                except json.JSONDecodeError:
-                    continue
-                done = event.get("train_time") if kind == "seconds" else event.get("step")
-                if event["event"] == "progress":
-                    progress.update(tasks[i], completed=min(done, budget), status=f"step {event['step']}")
-                elif event["event"] == "eval":
-                    m = event["metrics"]
-                    progress.update(
-                        tasks[i],
-                        completed=min(done, budget),
-                        status=f"step {event['step']} psnr {m.get('psnr', float('nan')):.2f}",
-                    )
+            with proc.stdout, open(Path(queue[i]["run_dir"]) / "events.jsonl", "w") as events:
+                for line in proc.stdout:
+                    events.write(line)
+                    events.flush()
+                    try:
+                        event = json.loads(line)
+                    except json.JSONDecodeError:
+                        continue
+                    done = event.get("train_time") if kind == "seconds" else event.get("step")
+                    if event["event"] == "progress":
+                        progress.update(tasks[i], completed=min(done, budget), status=f"step {event['step']}")
+                    elif event["event"] == "eval":
+                        m = event["metrics"]
+                        progress.update(
+                            tasks[i],
+                            completed=min(done, budget),
+                            status=f"step {event['step']} psnr {m.get('psnr', float('nan')):.2f}",
+                        )
 
         while pending or running:
             while pending and len(running) < jobs:
@@ -248,7 +252,7 @@ def run_benchmark(config: RunConfig) -> Dict[str, Any]:
         "failures": failures,
         "runs": runs,
     }
-    (out / "results.json").write_text(json.dumps(results, indent=1, default=float))
+    write_text_atomic(out / "results.json", json.dumps(results, indent=1, default=float))
     CONSOLE.print(f"seathru-bench: wrote {out / 'results.json'}")
     from seathru_nerfstudio.bench import report  # imported late: plotting is only needed here
 
