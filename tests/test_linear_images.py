@@ -72,6 +72,7 @@ def test_nerfstudio_loader_loses_the_low_bits_ours_keeps_them(tiny_dataset):
     assert len(torch.unique(theirs)) < 5
     assert len(torch.unique(ours)) == ramp.size
     np.testing.assert_allclose(ours.numpy() * 65535.0, ramp, atol=1e-2)
+    assert not {"gt_clean", "gt_depth", "depth_image"} & set(LinearImageDataset(outputs)[0])  # none declared
 
 
 def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
@@ -97,3 +98,71 @@ def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
     true_range = min(float(np.load(p).min()) for p in (scene / "ground_truth" / "depth").glob("*.npy"))
     near_m = outputs.metadata["near_plane"] / scale
     assert 0.8 * true_range < near_m < 1.5 * true_range, (near_m, true_range)
+
+
+def _synth_scene(root, name="s"):
+    from seathru_nerfstudio.data.synthetic import SynthConfig, generate
+
+    return generate(SynthConfig(output_dir=root / name, width=24, height=16, num_views=3, sfm_points_per_view=20))
+
+
+def _parse(scene, split="train"):
+    from seathru_nerfstudio.data.nerfstudio_data import SeathruNerfstudioDataParserConfig
+
+    return SeathruNerfstudioDataParserConfig(data=scene).setup().get_dataparser_outputs(split)
+
+
+def _edit_frames(scene, edit):
+    meta = json.loads((scene / "transforms.json").read_text())
+    for index, frame in enumerate(meta["frames"]):
+        edit(index, frame)
+    (scene / "transforms.json").write_text(json.dumps(meta))
+
+
+def test_ground_truth_comes_from_the_frames_not_from_the_image_paths(tmp_path):
+    """The dataset loads the files each frame declares, wherever they are."""
+    scene = _synth_scene(tmp_path)
+    (scene / "ground_truth").rename(scene / "truth")  # where no rule based on image paths looks
+
+    def move(index, frame):
+        for field in ("gt_clean_file_path", "gt_depth_file_path"):
+            frame[field] = frame[field].replace("ground_truth/", "truth/")
+
+    _edit_frames(scene, move)
+    outputs = _parse(scene)
+    names = [p.name for p in outputs.image_filenames]
+    assert names == ["frame_00001.png", "frame_00002.png"]  # frame 0 is held out
+    assert [p.name for p in outputs.metadata["gt_clean_filenames"]] == names
+    assert [p.name for p in outputs.metadata["gt_depth_filenames"]] == ["frame_00001.npy", "frame_00002.npy"]
+    item = LinearImageDataset(outputs)[1]
+    clean = read_linear_image(scene / "truth" / "clean" / "frame_00002.png")
+    np.testing.assert_array_equal(item["gt_clean"].numpy(), clean)
+    depth = np.load(scene / "truth" / "depth" / "frame_00002.npy")
+    np.testing.assert_array_equal(item["gt_depth"][..., 0].numpy(), depth * np.float32(outputs.dataparser_scale))
+    assert torch.isinf(item["gt_depth"]).any() and torch.isfinite(item["gt_depth"]).any()  # open water and objects
+
+
+def test_older_synthetic_scenes_without_declared_ground_truth_still_load(tmp_path):
+    scene = _synth_scene(tmp_path)
+    _edit_frames(scene, lambda index, frame: [frame.pop(f) for f in ("gt_clean_file_path", "gt_depth_file_path")])
+    with pytest.warns(UserWarning, match="declares no ground truth"):
+        outputs = _parse(scene)
+    item = LinearImageDataset(outputs)[0]
+    np.testing.assert_array_equal(item["gt_clean"].numpy(), read_linear_image(scene / "ground_truth" / "clean" / "frame_00001.png"))
+    assert item["gt_depth"].shape == (16, 24, 1)
+    (scene / "ground_truth").rename(scene / "elsewhere")  # a dataset without ground truth has none
+    item = LinearImageDataset(_parse(scene))[0]
+    assert "gt_clean" not in item and "gt_depth" not in item and "depth_image" in item
+
+
+def test_ground_truth_for_some_frames_or_missing_files_is_a_clear_error(tmp_path):
+    from seathru_nerfstudio.data.nerfstudio_data import GroundTruthError
+
+    scene = _synth_scene(tmp_path)
+    _edit_frames(scene, lambda index, frame: frame.pop("gt_depth_file_path") if index == 0 else None)
+    with pytest.raises(GroundTruthError, match=r"transforms.json: 2 of 3 frames have 'gt_depth_file_path'"):
+        _parse(scene)
+    scene = _synth_scene(tmp_path, "other")
+    (scene / "ground_truth" / "clean" / "frame_00002.png").unlink()
+    with pytest.raises(GroundTruthError, match=r"gt_clean_file_path names 1 missing file\(s\): .*frame_00002.png"):
+        _parse(scene)

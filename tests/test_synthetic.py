@@ -175,6 +175,9 @@ def test_transforms_poses_and_splits(water: Path):
     assert names == [f"images/frame_{i:05d}.png" for i in range(N)]
     for f in meta["frames"]:
         assert (water / f["file_path"]).is_file()
+        stem = Path(f["file_path"]).stem  # each frame declares its ground truth
+        assert f["gt_clean_file_path"] == f"ground_truth/clean/{stem}.png" and (water / f["gt_clean_file_path"]).is_file()
+        assert f["gt_depth_file_path"] == f"ground_truth/depth/{stem}.npy" and (water / f["gt_depth_file_path"]).is_file()
         T = np.array(f["transform_matrix"])
         assert T.shape == (4, 4)
         assert np.allclose(T[3], [0, 0, 0, 1])

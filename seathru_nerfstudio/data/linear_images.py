@@ -2,9 +2,9 @@
 
 nerfstudio's ``InputDataset`` reads every image through PIL and casts it to uint8, which
 throws away the low byte of 16-bit linear captures (the dark half of an underwater frame).
-:class:`LinearImageDataset` reads them at full precision instead, and also carries the
-synthetic scenes' ground truth (``ground_truth/clean`` and ``ground_truth/depth``) into
-eval batches when it is present.
+:class:`LinearImageDataset` reads them at full precision instead, and also carries the ground
+truth that the dataparser declares per frame (:mod:`seathru_nerfstudio.data.ground_truth`)
+into the batches.
 """
 
 from __future__ import annotations
@@ -21,8 +21,7 @@ from torch import Tensor
 
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
-
-GROUND_TRUTH_DIR = "ground_truth"
+from seathru_nerfstudio.data.ground_truth import GT_CLEAN_FILENAMES, GT_DEPTH_FILENAMES
 
 
 class ImageReadError(ValueError):
@@ -64,10 +63,20 @@ def read_linear_image(path: Path | str, scale_factor: float = 1.0) -> npt.NDArra
     return np.ascontiguousarray(image)
 
 
-def ground_truth_paths(image_path: Path) -> tuple[Path, Path]:
-    """Where ``seathru-synth`` keeps the clean image and the range map of ``image_path``."""
-    root = image_path.parent.parent / GROUND_TRUTH_DIR
-    return root / "clean" / image_path.name, (root / "depth" / image_path.name).with_suffix(".npy")
+def read_range_map(path: Path | str) -> npt.NDArray[np.float32]:
+    """A ground-truth range map: ``.npy``, ``H x W`` (or ``H x W x 1``), float; ``inf`` = open water."""
+    path = Path(path)
+    if not path.is_file():
+        raise ImageReadError(f"{path}: no such ground-truth depth file")
+    try:
+        depth = np.load(path, allow_pickle=False)
+    except ValueError as error:
+        raise ImageReadError(f"{path}: not a .npy array ({error})") from error
+    if depth.ndim == 3 and depth.shape[2] == 1:
+        depth = depth[:, :, 0]
+    if depth.ndim != 2 or not np.issubdtype(depth.dtype, np.floating):
+        raise ImageReadError(f"{path}: expected a float H x W range map, got {depth.dtype} of shape {depth.shape}")
+    return depth.astype(np.float32)
 
 
 class LinearImageDataset(InputDataset):
@@ -75,9 +84,10 @@ class LinearImageDataset(InputDataset):
 
     Batches gain ``gt_clean`` (linear RGB) and ``gt_depth`` (range from the camera centre,
     in scene units: world units times the dataparser scale; ``inf`` for open water) when the
-    dataset has a ``ground_truth/`` folder beside its images, and ``depth_image`` (z-depth in
-    scene units, 0 = unknown; e.g. sparse SfM depths) when its frames have nerfstudio's
-    ``depth_file_path``, read as nerfstudio's ``DepthDataset`` reads them.
+    dataparser's metadata lists ground-truth files (``gt_clean_filenames``,
+    ``gt_depth_filenames``), and ``depth_image`` (z-depth in scene units, 0 = unknown; e.g.
+    sparse SfM depths) when its frames have nerfstudio's ``depth_file_path``, read as
+    nerfstudio's ``DepthDataset`` reads them.
     """
 
     def get_image_float32(self, image_idx: int) -> Float[Tensor, "image_height image_width num_channels"]:
@@ -95,24 +105,25 @@ class LinearImageDataset(InputDataset):
         return np.clip(np.round(image * 255.0), 0, 255).astype(np.uint8)
 
     def get_metadata(self, data: Dict) -> Dict:
-        filename = Path(self._dataparser_outputs.image_filenames[data["image_idx"]])
-        clean_path, depth_path = ground_truth_paths(filename)
+        index = data["image_idx"]
+        declared = self._dataparser_outputs.metadata
         metadata: Dict[str, Optional[Tensor]] = {}
-        if clean_path.is_file():
-            metadata["gt_clean"] = torch.from_numpy(read_linear_image(clean_path, self.scale_factor)[..., :3])
-        if depth_path.is_file():
-            depth = np.load(depth_path).astype(np.float32)
+        if declared.get(GT_CLEAN_FILENAMES):
+            clean = read_linear_image(declared[GT_CLEAN_FILENAMES][index], self.scale_factor)
+            metadata["gt_clean"] = torch.from_numpy(clean[..., :3])
+        if declared.get(GT_DEPTH_FILENAMES):
+            depth = read_range_map(declared[GT_DEPTH_FILENAMES][index])
             if self.scale_factor != 1.0:
                 height, width = depth.shape[:2]
                 size = (int(width * self.scale_factor), int(height * self.scale_factor))
                 depth = cv2.resize(depth, size, interpolation=cv2.INTER_NEAREST)
             scale = float(self._dataparser_outputs.dataparser_scale)
             metadata["gt_depth"] = torch.from_numpy(depth * scale)[..., None]
-        depth_filenames = self._dataparser_outputs.metadata.get("depth_filenames")
+        depth_filenames = declared.get("depth_filenames")
         if depth_filenames:
-            camera = self._dataparser_outputs.cameras[data["image_idx"]]
+            camera = self._dataparser_outputs.cameras[index]
             metadata["depth_image"] = get_depth_image_from_path(
-                filepath=Path(depth_filenames[data["image_idx"]]),
+                filepath=Path(depth_filenames[index]),
                 height=int(camera.height),
                 width=int(camera.width),
                 scale_factor=float(self._dataparser_outputs.metadata["depth_unit_scale_factor"])

@@ -11,19 +11,25 @@
   backscatter, and one allowed out to nerfacto's 1000 units starts as an opaque wall behind
   the open water, which no gradient removes once the water hides it. The renderer's
   closed-form water before the near and after the far bound keeps the medium unclipped.
+* Ground truth that the frames declare (``gt_depth_file_path``, ``gt_clean_file_path``, see
+  :mod:`seathru_nerfstudio.data.ground_truth`) goes into ``metadata`` as paths that follow
+  ``image_filenames``, for ``LinearImageDataset`` to load.
 """
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Type
+from typing import Dict, List, Type
 
 import numpy as np
 
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
+from nerfstudio.utils.io import load_from_json
+from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, legacy_paths
 
 SCALE_KEY = "dataparser_scale"
 """Metadata key: scene units per world unit (a float)."""
@@ -39,11 +45,16 @@ class SeathruNerfstudioDataParserConfig(NerfstudioDataParserConfig):
     _target: Type = field(default_factory=lambda: SeathruNerfstudio)
 
 
+class GroundTruthError(ValueError):
+    """The frames declare ground truth for some frames only, or name files that do not exist."""
+
+
 class SeathruNerfstudio(Nerfstudio):
-    """nerfstudio's parser; ``metadata["dataparser_scale"]`` added."""
+    """nerfstudio's parser; the scale, SfM bounds and declared ground truth added to ``metadata``."""
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        outputs.metadata.update(self._ground_truth([Path(p) for p in outputs.image_filenames]))
         scale = float(outputs.dataparser_scale)
         outputs.metadata[SCALE_KEY] = scale
         depth_files = outputs.metadata.get("depth_filenames")
@@ -54,6 +65,35 @@ class SeathruNerfstudio(Nerfstudio):
                 outputs.metadata["near_plane"] = bounds[0] * unit * scale
                 outputs.metadata["far_plane"] = bounds[1] * unit * scale
         return outputs
+
+    def _ground_truth(self, image_filenames: List[Path]) -> Dict[str, List[Path]]:
+        """The ground-truth files the frames declare, in ``image_filenames`` order (metadata key ->
+        paths); for a ``seathru-synth`` scene older than these fields, its fixed layout."""
+        transforms = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
+        frames = load_from_json(transforms)["frames"]
+        by_image = {self._get_fname(Path(frame["file_path"]), transforms.parent): frame for frame in frames}
+        found: Dict[str, List[Path]] = {}
+        for key, name in FRAME_FIELDS.items():
+            declared = sum(name in frame for frame in frames)
+            if declared == 0:
+                continue
+            if declared < len(frames):
+                raise GroundTruthError(
+                    f"{transforms}: {declared} of {len(frames)} frames have {name!r}; give it for every frame or for none"
+                )
+            found[key] = [transforms.parent / by_image[image][name] for image in image_filenames]
+            missing = [str(path) for path in found[key] if not path.is_file()]
+            if missing:
+                raise GroundTruthError(f"{transforms}: {name} names {len(missing)} missing file(s): {', '.join(missing[:3])}")
+        if found:
+            return found
+        legacy = legacy_paths(transforms.parent, image_filenames)
+        if legacy:
+            warnings.warn(
+                f"{transforms} declares no ground truth; using the files in its ground_truth/ folder (a seathru-synth "
+                "scene written before frames named them: write it again to declare them)"
+            )
+        return legacy
 
 
 def sfm_bounds(depth_files, heights, widths) -> tuple[float, float] | None:

@@ -23,7 +23,9 @@ Conventions (all outputs):
 
 Layout of ``DIR``::
 
-    transforms.json                 nerfstudio format, with train/val/test_filenames splits
+    transforms.json                 nerfstudio format, with train/val/test_filenames splits; each
+                                    frame names its ground truth (gt_clean_file_path,
+                                    gt_depth_file_path: see data/ground_truth.py)
     images/frame_00000.png          I (with medium), 16-bit linear RGB
     depth/frame_00000.png           sparse SfM-like z-depth, 16-bit millimetres, 0 = unknown
     ground_truth/clean/frame_*.png  J (no medium), 16-bit linear RGB

@@ -14,6 +14,7 @@ import numpy as np
 import tyro
 
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress
+from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, GT_CLEAN_FILENAMES, GT_DEPTH_FILENAMES
 from seathru_nerfstudio.data.io import OutputFolderError, atomic_output_folder, write_png16, write_png16_gray
 from seathru_nerfstudio.data.synthetic.cameras import HORIZONTAL_FOV_DEG, intrinsics, make_poses
 from seathru_nerfstudio.data.synthetic.render import PRESETS, PresetName, render_view, sfm_like_depth
@@ -102,15 +103,17 @@ def generate(config: SynthConfig) -> Path:
                 for i, (I, J, depth) in enumerate(pool.map(render, list(poses))):
                     stem = f"frame_{i:05d}"
                     name = f"images/{stem}.png"
-                    write_png16(tmp / name, I)
-                    write_png16(tmp / "ground_truth" / "clean" / f"{stem}.png", J)
-                    np.save(tmp / "ground_truth" / "depth" / f"{stem}.npy", depth)
-                    n_open += int(np.sum(~np.isfinite(depth)))
                     frame = {"file_path": name, "transform_matrix": poses[i].tolist()}
                     if config.sfm_points_per_view > 0:
                         frame["depth_file_path"] = f"depth/{stem}.png"
                         sparse = sfm_like_depth(J, depth, K, config.sfm_points_per_view, seed=(config.seed, i))
                         write_png16_gray(tmp / frame["depth_file_path"], sparse)
+                    frame[FRAME_FIELDS[GT_CLEAN_FILENAMES]] = f"ground_truth/clean/{stem}.png"
+                    frame[FRAME_FIELDS[GT_DEPTH_FILENAMES]] = f"ground_truth/depth/{stem}.npy"
+                    write_png16(tmp / name, I)
+                    write_png16(tmp / frame[FRAME_FIELDS[GT_CLEAN_FILENAMES]], J)
+                    np.save(tmp / frame[FRAME_FIELDS[GT_DEPTH_FILENAMES]], depth)
+                    n_open += int(np.sum(~np.isfinite(depth)))
                     frames.append(frame)
                     names.append(name)
                     progress.advance(task)
