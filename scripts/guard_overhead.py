@@ -53,6 +53,10 @@ def main() -> None:
 
     import torch
 
+    from seathru_nerfstudio.quiet import silence_upstream_warnings
+
+    silence_upstream_warnings()
+
     work = Path(tempfile.mkdtemp(prefix="guard-overhead-"))
     scene = args.scene
     if scene is None:

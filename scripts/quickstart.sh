@@ -7,6 +7,10 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 BIN=.venv/bin
+# nerfstudio and torch print hundreds of known deprecation warnings over the progress display;
+# ignore exactly those (seathru_nerfstudio/quiet.py), keep every other warning
+PYTHONWARNINGS="$("$BIN/python" -m seathru_nerfstudio.quiet)"
+export PYTHONWARNINGS
 OUT=outputs/quickstart
 SCENE=$OUT/demo-water
 mkdir -p "$OUT"

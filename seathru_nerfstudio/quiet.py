@@ -5,7 +5,8 @@ issues it (as Python's ``-W`` / ``PYTHONWARNINGS`` options match them), so the s
 from anywhere else, and every warning of ours, still shows. Our entry points call
 :func:`silence_upstream_warnings`; child processes (the bench worker, ``ns-train``,
 ``ns-eval`` and ``ns-render`` in ``scripts/quickstart.sh``) get :func:`pythonwarnings` in
-their ``PYTHONWARNINGS``. ``python -m seathru_nerfstudio.quiet`` prints that value.
+their ``PYTHONWARNINGS``. ``python -m seathru_nerfstudio.quiet`` prints that value (the
+caller's own ``PYTHONWARNINGS`` kept at the end).
 """
 
 from __future__ import annotations
@@ -25,19 +26,27 @@ class KnownWarning:
     """The module the warning is attributed to, exactly."""
 
 
-UPSTREAM_WARNINGS = (
-    # nerfstudio 1.1.5 indexes tensors with lists; torch >= 2.5 warns on every camera ray bundle.
-    KnownWarning(UserWarning, "Using a non-tuple sequence for multidimensional indexing is deprecated", "nerfstudio.cameras.cameras"),
-    # tinycudann-free nerfstudio fields still decorate with torch.jit.script / torch.cuda.amp.
-    KnownWarning(FutureWarning, "`torch.jit.script` is deprecated", "torch.jit._script"),
-    KnownWarning(FutureWarning, "`torch.cuda.amp.custom_fwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
-    KnownWarning(FutureWarning, "`torch.cuda.amp.custom_bwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
-    KnownWarning(FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated", "nerfstudio.engine.trainer"),
+_UPSTREAM = [
+    # nerfstudio 1.1.5 indexes tensors with lists: torch warns on every camera ray bundle.
+    (UserWarning, "Using a non-tuple sequence for multidimensional indexing is deprecated", "nerfstudio.cameras.cameras"),
+    # nerfstudio decorates with torch.jit.script and torch.cuda.amp's custom_fwd/custom_bwd, and
+    # builds torch.cuda.amp's GradScaler (we use none of them).
+    (FutureWarning, "`torch.jit.script` is deprecated", "torch.jit._script"),
+    (FutureWarning, "`torch.cuda.amp.custom_fwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
+    (FutureWarning, "`torch.cuda.amp.custom_bwd(args...)` is deprecated", "nerfstudio.field_components.activations"),
+    (FutureWarning, "`torch.cuda.amp.GradScaler(args...)` is deprecated", "nerfstudio.engine.trainer"),
     # nerfstudio imports torchmetrics' SAM from its old place.
-    KnownWarning(FutureWarning, "Importing `spectral_angle_mapper` from `torchmetrics.functional`", "torchmetrics.utilities.prints"),
+    (FutureWarning, "Importing `spectral_angle_mapper` from `torchmetrics.functional`", "torchmetrics.utilities.prints"),
+    # nerfstudio's camera path interpolation (ns-render) copy-constructs tensors.
+    (UserWarning, "To copy construct from a tensor, it is recommended", "nerfstudio.cameras.camera_utils"),
+    # nerfstudio's datamanagers ask for 4 image-loader processes per device, whatever the core count.
+    (UserWarning, "This DataLoader will create", "torch.utils.data.dataloader"),
+    # nerfstudio's event writer turns training scalars into floats while they still carry a graph.
+    (UserWarning, "Converting a tensor with requires_grad=True to a scalar", "nerfstudio.utils.writer"),
     # nerfstudio steps every scheduler each iteration, also those whose optimiser had nothing to do.
-    KnownWarning(UserWarning, "Detected call of `lr_scheduler.step()` before `optimizer.step()`", "nerfstudio.engine.optimizers"),
-)
+    (UserWarning, "Detected call of `lr_scheduler.step()` before `optimizer.step()`", "nerfstudio.engine.optimizers"),
+]
+UPSTREAM_WARNINGS = tuple(KnownWarning(category, message, module) for category, message, module in _UPSTREAM)
 
 
 def silence_upstream_warnings() -> None:
@@ -61,4 +70,6 @@ def child_environment(environ: Mapping[str, str]) -> dict[str, str]:
 
 
 if __name__ == "__main__":
-    print(pythonwarnings())
+    import os
+
+    print(pythonwarnings(os.environ.get("PYTHONWARNINGS")))
