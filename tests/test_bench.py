@@ -279,6 +279,7 @@ def test_report_writes_table_and_plot(tmp_path):
 # ---------------------------------------------------------------- tiny end-to-end run
 
 
+@pytest.mark.slow
 def test_tiny_benchmark_run_end_to_end(tmp_path):
     out = tmp_path / "bench"
     cmd = [
