@@ -23,7 +23,7 @@ from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio import diagnostics, metrics, viewer
-from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
+from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import FixedMedium, MediumField, MediumOutputs, SceneMedium
 from seathru_nerfstudio.rendering import Quadrature, render_seathru
@@ -74,6 +74,12 @@ class SeathruModelConfig(NerfactoModelConfig):
     images' average water colour), then the object field starts. The untrained veiling light
     (0.5) is far brighter than dark water; if the object field learns first, it cancels it with a
     black screen in front of the lens (measured: clean image black, open water opaque)."""
+    medium_envelope_quantile: float = 0.01
+    """In the medium-first stage, both densities also fit the backscatter as this lower quantile
+    of the image at the SfM depths (Sea-thru's dark-pixel estimate,
+    :func:`~seathru_nerfstudio.losses.backscatter_envelope_loss`), so that the object field
+    starts with a medium estimated from the data instead of ``medium_init_density``;
+    attenuation starts equal to backscatter. 0: off (the densities wait at their initial value)."""
     medium_warmup_steps: int = 0
     """Iterations over which the medium densities ramp up linearly from 0 (clear water); 0: off.
     Experimental: on the demo scene it gave the best in-medium PSNR but baked the water into the
@@ -246,7 +252,10 @@ class SeathruModel(NerfactoModel):
         medium = self.medium_field(ray_bundle.directions)  # once per ray
         if not self.training and self.medium_controls_enabled:
             medium = self.viewer_controls.medium(medium)  # the viewer's water density and colour
+        densities_for_envelope = None
         if self.object_frozen:
+            if self.config.medium_envelope_quantile > 0:
+                densities_for_envelope = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
             # An empty scene shows exactly c_med on every ray, whatever the densities: keep round-off
             # gradients (which Adam would scale up to full steps) off them.
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())
@@ -286,6 +295,8 @@ class SeathruModel(NerfactoModel):
             outputs["transmittance"] = render.transmittance
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
+            if densities_for_envelope is not None:
+                outputs["medium_densities_for_envelope"] = densities_for_envelope
         for i in range(self.config.num_proposal_iterations):
             outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
         return outputs
@@ -319,6 +330,8 @@ class SeathruModel(NerfactoModel):
                 scale=self.config.binary_prior_scale,
                 empty_weight=self.config.binary_prior_empty_weight,
             )
+        if "medium_densities_for_envelope" in outputs and "depth_image" in batch:
+            loss_dict["backscatter_envelope_loss"] = self._envelope_loss(outputs, batch)
         if self.training and self.config.depth_loss_mult > 0:
             loss = self._depth_loss(outputs, batch)
             if loss is not None:
@@ -330,6 +343,19 @@ class SeathruModel(NerfactoModel):
                     "seathru-process-data writes sparse SfM depths, seathru-synth writes them too"
                 )
         return loss_dict
+
+    def _envelope_loss(self, outputs, batch) -> torch.Tensor:
+        """Medium-first stage: attenuation and backscatter densities both fit the backscatter
+        envelope at the SfM ranges, under the veiling light learned so far (held fixed here)."""
+        z_depth = batch["depth_image"].to(self.device)  # scene units; 0 = unknown
+        ray_range = z_depth * outputs.get("directions_norm", torch.ones_like(z_depth))
+        image = batch["image"][..., :3].to(self.device)
+        veil = outputs["medium_rgb"].detach()
+        sigma_attn, sigma_bs = outputs["medium_densities_for_envelope"].split(3, dim=-1)
+        quantile = self.config.medium_envelope_quantile
+        return backscatter_envelope_loss(image, ray_range, veil, sigma_attn, quantile) + backscatter_envelope_loss(
+            image, ray_range, veil, sigma_bs, quantile
+        )
 
     def _depth_loss(self, outputs, batch) -> Optional[torch.Tensor]:
         """nerfacto's DS-NeRF depth loss on the object weights, where a depth is known
