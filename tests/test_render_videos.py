@@ -1,14 +1,16 @@
-"""Issue #4, water on / water off, in ``ns-render`` videos.
+"""Water on, water off in ``ns-render`` videos (the session's ``tiny_run`` checkpoint).
 
-* ``ns-render interpolate`` makes a video of every output (``rgb``, ``clean``, ``direct``,
-  ``backscatter``, depths, ``accumulation``, the ``medium_*`` maps, ``water_split``) with the
-  expected frame count and size; colours are display encoded (sRGB), medium maps normalised;
-* ``ns-render spiral`` and ``ns-render camera-path`` work too;
-* the real ``ns-render`` CLI renders ``water_split``: its left half is the video in the
-  water, its right half the clean video, and the two differ where there is water.
+* ``ns-render interpolate`` renders every output, linear and display, in one call (nerfstudio
+  puts several outputs side by side in one video): the expected frame count and size; the
+  linear outputs are the linear values, the ``*_display`` ones sRGB encoded, the density maps
+  normalised;
+* ``ns-render spiral`` works too;
+* the real ``ns-render`` CLI renders a camera path (as the viewer's Render tab exports) of
+  ``water_split``, ``rgb_display`` and ``clean_display`` in one call: ``water_split``'s left
+  half is the video in the water, its right half the clean video, and the two differ.
 
-One tiny checkpoint for the module; ``ns-render`` runs in-process through its entry point
-(the real CLI once, in a subprocess, in parallel). Needs ffmpeg and PyAV.
+``ns-render`` runs in-process through its entry point, and the CLI once, in a subprocess, in
+parallel. Needs ffmpeg and PyAV.
 """
 
 from __future__ import annotations
@@ -19,23 +21,23 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Dict, Sequence
 
 import numpy as np
 import pytest
 import torch
 
-sys.path.insert(0, str(Path(__file__).parent / "browser"))
-import tiny_checkpoint  # noqa: E402
+import tiny_checkpoint
+from seathru_nerfstudio.viewer import DISPLAY_OUTPUTS, linear_to_srgb
 
-pytestmark = pytest.mark.slow
-
-OUTPUTS = (
+LINEAR_OUTPUTS = (
     "rgb", "clean", "direct", "backscatter", "depth", "expected_depth", "accumulation",
     "medium_rgb", "medium_attenuation", "medium_backscatter", "prop_depth_0", "prop_depth_1",
-    "water_split",
 )  # fmt: skip
-COLOURS = ("rgb", "clean", "direct", "backscatter", "medium_rgb", "water_split")
+PATH_OUTPUTS = ("water_split", "rgb_display", "clean_display")
 PATH_FRAMES, PATH_W, PATH_H = 3, 64, 48
+MARGIN = 3
+"""Pixels left out at each panel's edges, where the video codec blends neighbouring panels."""
 
 
 def read_video(path: Path) -> np.ndarray:
@@ -43,6 +45,17 @@ def read_video(path: Path) -> np.ndarray:
 
     with av.open(str(path)) as container:
         return np.stack([frame.to_ndarray(format="rgb24") for frame in container.decode(video=0)])
+
+
+def panels(video: np.ndarray, names: Sequence[str]) -> Dict[str, np.ndarray]:
+    """The outputs of a video that ``ns-render`` made of several outputs side by side."""
+    width = video.shape[2] // len(names)
+    assert width * len(names) == video.shape[2], (video.shape, len(names))
+    return {name: video[:, :, i * width : (i + 1) * width] for i, name in enumerate(names)}
+
+
+def inner(x: np.ndarray) -> np.ndarray:
+    return x[..., MARGIN:-MARGIN, MARGIN:-MARGIN, :].astype(np.float64)
 
 
 def camera_path(scene: Path, run_dir: Path) -> dict:
@@ -72,39 +85,36 @@ def camera_path(scene: Path, run_dir: Path) -> dict:
 
 
 @pytest.fixture(scope="module")
-def trained(tmp_path_factory):
+def out_dir(tiny_run, tmp_path_factory):
     assert shutil.which("ffmpeg"), "ns-render needs ffmpeg on PATH (apt-get install -y ffmpeg)"
-    checkpoint = tiny_checkpoint.train_tiny(tmp_path_factory.mktemp("render"))
-    path = checkpoint["root"] / "camera_path.json"
-    path.write_text(json.dumps(camera_path(checkpoint["scene"], checkpoint["config"].parent)))
-    checkpoint["camera_path"] = path
-    return checkpoint
+    return tmp_path_factory.mktemp("render")
 
 
 @pytest.fixture(scope="module")
-def split_cli(trained):
-    """The real ns-render CLI rendering water_split along the camera path, started now so it
-    runs while the in-process renders do."""
-    root = trained["root"]
-    video = root / "cli" / "water_split.mp4"
-    log = open(root / "ns-render.log", "w")
+def path_cli(tiny_run, out_dir):
+    """The real ns-render CLI rendering the camera path, started first so it runs while the
+    in-process renders do."""
+    path = out_dir / "camera_path.json"
+    path.write_text(json.dumps(camera_path(tiny_run["scene"], tiny_run["config"].parent)))
+    video = out_dir / "cli" / "path.mp4"
+    log = open(out_dir / "ns-render.log", "w")
     proc = tiny_checkpoint.start_group(
         [
             tiny_checkpoint.BIN / "ns-render", "camera-path",
-            "--load-config", trained["config"],
-            "--camera-path-filename", trained["camera_path"],
+            "--load-config", tiny_run["config"],
+            "--camera-path-filename", path,
             "--output-path", video,
-            "--rendered-output-names", "water_split",
+            "--rendered-output-names", *PATH_OUTPUTS,
         ],
-        cwd=root, env=tiny_checkpoint.quiet_env(), stdout=log, stderr=subprocess.STDOUT,
+        cwd=out_dir, env=tiny_checkpoint.quiet_env(), stdout=log, stderr=subprocess.STDOUT,
     )  # fmt: skip
-    yield {"proc": proc, "video": video, "log": root / "ns-render.log"}
+    yield {"proc": proc, "video": video, "log": out_dir / "ns-render.log"}
     tiny_checkpoint.stop_group(proc)  # its data-manager workers too, if it left any
     log.close()
 
 
 @pytest.fixture(scope="module")
-def ns_render(trained, split_cli):
+def ns_render(path_cli):
     """``ns-render <args>`` in-process, through nerfstudio's own entry point."""
     from nerfstudio.scripts import render
 
@@ -123,85 +133,66 @@ def ns_render(trained, split_cli):
     torch.set_num_threads(threads)
 
 
-@pytest.fixture(scope="module")
-def path_videos(trained, ns_render):
-    """``ns-render camera-path`` videos of rgb (in water) and clean."""
-    videos = {}
-    for name in ("rgb", "clean"):
-        videos[name] = trained["root"] / "path" / f"{name}.mp4"
-        ns_render(
-            "camera-path", "--load-config", trained["config"], "--camera-path-filename", trained["camera_path"],
-            "--output-path", videos[name], "--rendered-output-names", name,
-        )  # fmt: skip
-    return videos
-
-
-def test_interpolate_renders_every_output_to_a_video(trained, ns_render):
+def test_interpolate_renders_every_output_linear_and_display(tiny_run, out_dir, ns_render):
     from nerfstudio.cameras.camera_paths import get_interpolated_camera_path
     from nerfstudio.utils.eval_utils import eval_setup
 
-    from seathru_nerfstudio.viewer import linear_to_srgb
+    names = LINEAR_OUTPUTS + DISPLAY_OUTPUTS
+    video_path = out_dir / "interpolate" / "all.mp4"
+    ns_render(
+        "interpolate", "--load-config", tiny_run["config"], "--output-path", video_path,
+        "--rendered-output-names", *names, "--interpolation-steps", 2, "--downscale-factor", 2,
+    )  # fmt: skip
 
-    videos = {}
-    for name in OUTPUTS:
-        videos[name] = trained["root"] / "interpolate" / f"{name}.mp4"
-        ns_render(
-            "interpolate", "--load-config", trained["config"], "--output-path", videos[name],
-            "--rendered-output-names", name, "--interpolation-steps", 2, "--downscale-factor", 2,
-        )  # fmt: skip
-
-    # What the videos should hold: the eval cameras' interpolated path, at half resolution.
-    _, pipeline, _, _ = eval_setup(trained["config"], test_mode="test")
+    # What the video should hold: the eval cameras' interpolated path, at half resolution.
+    _, pipeline, _, _ = eval_setup(tiny_run["config"], test_mode="test")
     cameras = pipeline.datamanager.eval_dataset.cameras
     path = get_interpolated_camera_path(cameras, steps=2, order_poses=False)
     width, height = int(cameras.width[0]) // 2, int(cameras.height[0]) // 2
-    frames = {name: read_video(video) for name, video in videos.items()}
-    for name, video in frames.items():
-        assert video.shape == (len(path), height, width, 3), (name, video.shape)
+    video = read_video(video_path)
+    assert video.shape == (len(path), height, width * len(names), 3), video.shape
+    frames = {name: panel[0] for name, panel in panels(video, names).items()}
 
-    # Colours are sRGB-encoded linear radiance (linear data must not look dark): the first
-    # frame is the first eval camera.
+    # The first frame is the first eval camera: compare with the model's own render of it.
     first = cameras[0:1].to(pipeline.device)
     first.rescale_output_resolution(0.5)
     pipeline.eval()
-    linear = pipeline.model.get_outputs_for_camera(first)  # not a display caller: linear
+    linear = pipeline.model.get_outputs_for_camera(first)
     for name in ("rgb", "clean", "backscatter", "medium_rgb"):
-        shown = frames[name][0].astype(np.float64)
-        expected = linear_to_srgb(linear[name]).numpy() * 255
-        raw = linear[name].clamp(0, 1).numpy() * 255
-        assert np.abs(shown - expected).mean() < 6.0, name
-        assert np.abs(shown - raw).mean() > np.abs(shown - expected).mean() + 10.0, name
+        raw = inner(linear[name].clamp(0, 1).numpy()[None] * 255)
+        encoded = inner(linear_to_srgb(linear[name]).numpy()[None] * 255)
+        shown, as_is = inner(frames[name + "_display"][None]), inner(frames[name][None])
+        # the display version is sRGB encoded (linear data must not look dark) ...
+        assert np.abs(shown - encoded).mean() < 6.0, name
+        assert np.abs(shown - raw).mean() > np.abs(shown - encoded).mean() + 10.0, name
+        # ... and the output itself is the linear value, as every caller gets it
+        assert np.abs(as_is - raw).mean() < 6.0, name
     # Medium densities are normalised for display: the largest one shows at full scale.
-    for name in ("medium_attenuation", "medium_backscatter"):
-        assert frames[name][0].max() >= 235, (name, frames[name][0].max())
+    for name in ("medium_attenuation_display", "medium_backscatter_display"):
+        assert frames[name].max() >= 235, (name, frames[name].max())
 
 
-def test_spiral_and_camera_path(trained, ns_render, path_videos):
-    spiral = trained["root"] / "spiral" / "clean.mp4"
+def test_spiral(tiny_run, out_dir, ns_render):
+    spiral = out_dir / "spiral" / "clean.mp4"
     ns_render(
-        "spiral", "--load-config", trained["config"], "--output-path", spiral,
-        "--rendered-output-names", "clean", "--seconds", 1, "--frame-rate", 3, "--downscale-factor", 2,
+        "spiral", "--load-config", tiny_run["config"], "--output-path", spiral,
+        "--rendered-output-names", "clean_display", "--seconds", 1, "--frame-rate", 3, "--downscale-factor", 2,
     )  # fmt: skip
     video = read_video(spiral)
     assert video.shape[0] == 3 and video.shape[1:3] == (24, 32), video.shape
 
-    for name, path in path_videos.items():
-        video = read_video(path)
-        assert video.shape == (PATH_FRAMES, PATH_H, PATH_W, 3), (name, video.shape)
 
-
-def test_ns_render_cli_water_split_shows_water_left_and_clean_right(trained, split_cli, path_videos):
-    proc = split_cli["proc"]
+def test_ns_render_cli_water_split_shows_water_left_and_clean_right(path_cli):
+    proc = path_cli["proc"]
     proc.wait(600)
-    assert proc.returncode == 0, split_cli["log"].read_text()[-5000:]
-    split = read_video(split_cli["video"]).astype(np.float64)
-    assert split.shape == (PATH_FRAMES, PATH_H, PATH_W, 3), split.shape
+    assert proc.returncode == 0, path_cli["log"].read_text()[-5000:]
+    video = read_video(path_cli["video"])
+    assert video.shape == (PATH_FRAMES, PATH_H, PATH_W * len(PATH_OUTPUTS), 3), video.shape
+    shown = {name: panel.astype(np.float64) for name, panel in panels(video, PATH_OUTPUTS).items()}
+    split, rgb, clean = shown["water_split"], shown["rgb_display"], shown["clean_display"]
 
-    # Compare with the rgb (in water) and clean videos of the same path.
-    rgb = read_video(path_videos["rgb"]).astype(np.float64)
-    clean = read_video(path_videos["clean"]).astype(np.float64)
-    half, margin = PATH_W // 2, 3  # stay clear of the dividing line and codec bleeding
-    left, right = slice(0, half - margin), slice(half + margin + 1, PATH_W)
+    half = PATH_W // 2  # stay clear of the dividing line and of the panels' edges
+    left, right = slice(MARGIN, half - MARGIN), slice(half + MARGIN + 1, PATH_W - MARGIN)
 
     def diff(a, b):
         return float(np.abs(a - b).mean())

@@ -29,7 +29,9 @@ def main() -> None:
     parser.add_argument("--load-config", type=Path, required=True)
     parser.add_argument("--output", type=Path, default=Path("docs/images/viewer.png"))
     parser.add_argument("--camera", type=int, default=1, help="training camera to look through")
-    parser.add_argument("--output-type", default="rgb", help="output shown (rgb, clean, water_split, ...)")
+    parser.add_argument(
+        "--output-type", default="rgb_display", help="output shown (rgb_display, clean_display, water_split, ...)"
+    )
     parser.add_argument("--max-res-steps", type=int, default=2, help="Max res = 64 + 100 * steps")
     parser.add_argument("--width", type=int, default=1400, help="page width (the 3D view gets ~4:3)")
     parser.add_argument("--height", type=int, default=800)
@@ -41,10 +43,12 @@ def main() -> None:
     from nerfstudio.utils.eval_utils import eval_setup
     from nerfstudio.viewer.viewer import VISER_NERFSTUDIO_SCALE_RATIO, Viewer
 
+    from seathru_nerfstudio.config import LOOPBACK
+
     _, pipeline, _, step = eval_setup(args.load_config, test_mode="test")
     port = viewer_page.free_port()
     viewer = Viewer(
-        ViewerConfig(websocket_port=port, image_format="png", max_num_display_images=0),
+        ViewerConfig(websocket_host=LOOPBACK, websocket_port=port, image_format="png", max_num_display_images=0),
         log_filename=args.load_config.parent / "viewer_log_filename.txt",
         datapath=pipeline.datamanager.get_datapath(),
         pipeline=pipeline,
@@ -86,14 +90,12 @@ def main() -> None:
         for _ in range(args.max_res_steps):
             thumb.press("ArrowRight")
         thumb.evaluate("(el) => el.blur()")  # no value tooltip in the picture
-        view.wait_for_render(max_res, timeout=args.timeout)
-        if args.output_type != "rgb":
+        shown = view.wait_for_render(max_res, timeout=args.timeout)
+        if view.dropdown_value("Output type") != args.output_type:
             view.choose_option("Output type", args.output_type)
-            time.sleep(1.0)
-            view.wait_for_render(max_res, timeout=args.timeout)
+            view.wait_for_render(max_res, previous=shown, timeout=args.timeout)
         page.mouse.move(5, args.height - 5)  # no tooltip
         view.show_label("sRGB display")
-        time.sleep(1.0)
         png = page.screenshot()
 
     from PIL import Image

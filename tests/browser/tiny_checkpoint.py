@@ -1,26 +1,20 @@
-"""A tiny SeaThru checkpoint through the real CLIs (seathru-synth, ns-train), for the viewer
-and render tests: a few iterations of a small model, cheap to render on a loaded CPU."""
+"""A tiny SeaThru checkpoint through the real CLIs (seathru-synth, ns-train), for the viewer,
+video and CLI tests (``tests/conftest.py`` trains it once per session): enough iterations of a
+small model for its loss to fall clearly, cheap to render on a loaded CPU."""
 
 from __future__ import annotations
 
 import os
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 from typing import Dict
 
-BIN = Path(sys.executable).parent
+from tiny_training import BIN, SMALL_MODEL_ARGS  # tests/ is on sys.path under pytest
 
-# Few samples and a small hash grid: renders ~4x cheaper than seathru-nerf-lite's defaults.
-SMALL_MODEL = [
-    "--pipeline.model.num-proposal-samples-per-ray", "16", "8",
-    "--pipeline.model.num-nerf-samples-per-ray", "16",
-    "--pipeline.model.num-levels", "4",
-    "--pipeline.model.log2-hashmap-size", "12",
-    "--pipeline.model.max-res", "128",
-]  # fmt: skip
+ITERATIONS = 40
+"""Enough for the training loss to fall to well under half (the veiling light fits first)."""
 
 
 def quiet_env(threads: int = 1) -> Dict[str, str]:
@@ -64,8 +58,9 @@ def run(*args, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
     return result
 
 
-def train_tiny(root: Path, iterations: int = 8, width: int = 64, height: int = 48) -> Dict[str, Path]:
-    """Synthetic water scene (8 views) and a checkpoint after ``iterations`` steps.
+def train_tiny(root: Path, iterations: int = ITERATIONS, width: int = 64, height: int = 48) -> Dict[str, Path]:
+    """Synthetic water scene (8 views) and a checkpoint after ``iterations`` steps, with the
+    training loss logged at every step (TensorBoard events in the run folder).
 
     ``SEATHRU_TINY_CHECKPOINT=<dir>`` reuses (or first fills) that folder instead: for
     iterating on the tests locally."""
@@ -86,8 +81,10 @@ def train_tiny(root: Path, iterations: int = 8, width: int = 64, height: int = 4
         "--steps-per-save", iterations,
         "--steps-per-eval-batch", 1000,
         "--steps-per-eval-image", 1000,
-        "--pipeline.datamanager.train-num-rays-per-batch", 128,
-        *SMALL_MODEL,
+        "--steps-per-eval-all-images", 1000,
+        "--logging.steps-per-log", 1,
+        "--pipeline.datamanager.train-num-rays-per-batch", 256,
+        *SMALL_MODEL_ARGS,
         "--vis", "tensorboard",
         cwd=root,
     )  # fmt: skip

@@ -3,6 +3,9 @@
 Used by ``tests/test_viewer.py`` and ``tests/browser/make_screenshot.py``. Needs
 ``apt-get install -y chromium`` and ``pip install playwright`` (never ``playwright install``:
 we launch the system chromium).
+
+Waits are Playwright's own (locators and ``expect`` wait until their condition holds); only the
+rendered image, which lives in a WebGL canvas and not in the page's DOM, is polled by screenshot.
 """
 
 from __future__ import annotations
@@ -117,10 +120,13 @@ class ViewerPage:
         return self.page.locator(f'[id="{self._label(text).get_attribute("for")}"]')
 
     def click_checkbox(self, text: str) -> bool:
-        """Toggle a checkbox; returns its new state."""
+        """Toggle a checkbox; returns its new state (once the page shows it)."""
+        from playwright.sync_api import expect
+
         box = self.checkbox(text)
-        box.scroll_into_view_if_needed()
-        box.click()
+        was_checked = box.is_checked()
+        box.click()  # scrolls it into view and waits until it can be clicked
+        expect(box).to_be_checked(checked=not was_checked)
         return box.is_checked()
 
     def slider_thumb(self, text: str):
@@ -128,13 +134,19 @@ class ViewerPage:
         return self.page.locator(f'[id="{slider_id}"] [role="slider"]')
 
     def slider_to_min(self, text: str) -> float:
-        """Move a slider to its minimum with the keyboard (Home); returns its value."""
+        """Move a slider to its minimum with the keyboard (Home); returns its value (once the
+        page shows it)."""
+        from playwright.sync_api import expect
+
         thumb = self.slider_thumb(text)
         thumb.scroll_into_view_if_needed()
-        thumb.focus()
         thumb.press("Home")
-        self.page.wait_for_timeout(200)
+        expect(thumb).to_have_attribute("aria-valuenow", thumb.get_attribute("aria-valuemin"))
         return float(thumb.get_attribute("aria-valuenow"))
+
+    def dropdown_value(self, text: str) -> str:
+        """The option a dropdown shows."""
+        return self.page.locator(f'[id="{self._label(text).get_attribute("for")}"]').input_value()
 
     def dropdown_options(self, text: str) -> list:
         """The options of a dropdown (opens and closes it)."""
@@ -145,6 +157,7 @@ class ViewerPage:
         options.first.wait_for(timeout=10_000)
         texts = [t.strip() for t in options.all_inner_texts()]
         self.page.keyboard.press("Escape")
+        options.first.wait_for(state="hidden")
         return texts
 
     def choose_option(self, text: str, option: str) -> None:
@@ -156,7 +169,10 @@ class ViewerPage:
 
     def show_label(self, text: str) -> None:
         """Scroll the control panel until this control is in view."""
+        from playwright.sync_api import expect
+
         self._label(text).scroll_into_view_if_needed()
+        expect(self._label(text)).to_be_in_viewport()
 
     # --- the rendered image ---------------------------------------------------------------
 
@@ -206,15 +222,20 @@ class ViewerPage:
     ) -> np.ndarray:
         """Until the full-resolution render (larger side ``max_res``) is shown, differs from
         ``previous`` by at least ``min_change`` (mean abs, 0-255) and has not changed for
-        ``settle`` seconds. Returns that view."""
+        ``settle`` seconds. Returns that view.
+
+        The resolution nerfstudio reports is waited for by Playwright; the pixels are polled
+        (screenshots), as no DOM state says that a render has reached the canvas."""
+        from playwright.sync_api import expect
+
+        full = re.compile(rf"Resolution:\s*({max_res}x\d+|\d+x{max_res})px")
+        expect(self.page.locator("body")).to_contain_text(full, timeout=timeout * 1000)
         deadline = time.time() + timeout
         stable_since, last = None, None
         while time.time() < deadline:
-            res = self.resolution()
-            shot = self.view()
-            done = res is not None and max(res) == max_res
-            if previous is not None:
-                done = done and mean_abs_diff(shot, previous) >= min_change
+            res, shot = self.resolution(), self.view()
+            done = res is not None and max(res) == max_res  # not a low-resolution render on the way
+            done = done and (previous is None or mean_abs_diff(shot, previous) >= min_change)
             if done and last is not None and mean_abs_diff(shot, last) == 0.0:
                 stable_since = stable_since or time.time()
                 if time.time() - stable_since >= settle:
@@ -222,5 +243,5 @@ class ViewerPage:
             else:
                 stable_since = None
             last = shot
-            time.sleep(0.5)
+            self.page.wait_for_timeout(250)  # screenshot poll interval
         raise TimeoutError(f"no new {max_res}px render within {timeout:.0f} s (resolution {self.resolution()})")

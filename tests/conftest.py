@@ -1,0 +1,41 @@
+"""Fixtures shared by the end-to-end tests: one tiny SeaThru run per test session.
+
+``tiny_run`` trains it once through the real CLIs (``seathru-synth``, ``ns-train``); the viewer,
+video and CLI tests all read it and write only into their own folders. ``ns_eval_results`` is
+the real ``ns-eval`` on it, also once. Every test that uses ``tiny_run`` is marked ``slow``
+(``pytest -m "not slow"`` leaves them out).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+from typing import Dict
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent / "browser"))
+import tiny_checkpoint  # noqa: E402
+
+
+@pytest.fixture(scope="session")
+def tiny_run(tmp_path_factory) -> Dict[str, Path]:
+    """``{"root", "scene", "config"}`` of a checkpoint trained once for the session."""
+    return tiny_checkpoint.train_tiny(tmp_path_factory.mktemp("tiny_run"))
+
+
+@pytest.fixture(scope="session")
+def ns_eval_results(tiny_run, tmp_path_factory) -> Dict[str, float]:
+    """``results`` of nerfstudio's ``ns-eval`` CLI on the tiny run."""
+    output = tmp_path_factory.mktemp("ns_eval") / "eval.json"
+    tiny_checkpoint.run(
+        tiny_checkpoint.BIN / "ns-eval", "--load-config", tiny_run["config"], "--output-path", output, cwd=output.parent
+    )
+    return json.loads(output.read_text())["results"]
+
+
+def pytest_collection_modifyitems(items) -> None:
+    for item in items:
+        if "tiny_run" in getattr(item, "fixturenames", ()):
+            item.add_marker(pytest.mark.slow)
