@@ -21,9 +21,14 @@ from typing import Mapping, Optional, Type
 class KnownWarning:
     category: Type[Warning]
     message: str
-    """The start of the message (case-insensitive); no ``:`` or ``,`` (``PYTHONWARNINGS`` syntax)."""
+    """The start of the message (case-insensitive)."""
     module: str
     """The module the warning is attributed to, exactly."""
+
+    def __post_init__(self) -> None:
+        for text in (self.message, self.module):
+            if ":" in text or "," in text:  # PYTHONWARNINGS separates fields by ":" and filters by ","
+                raise ValueError(f"{text!r}: a warning filter for PYTHONWARNINGS cannot hold ':' or ','")
 
 
 _UPSTREAM = [
@@ -38,7 +43,7 @@ _UPSTREAM = [
     # nerfstudio imports torchmetrics' SAM from its old place.
     (FutureWarning, "Importing `spectral_angle_mapper` from `torchmetrics.functional`", "torchmetrics.utilities.prints"),
     # nerfstudio's camera path interpolation (ns-render) copy-constructs tensors.
-    (UserWarning, "To copy construct from a tensor, it is recommended", "nerfstudio.cameras.camera_utils"),
+    (UserWarning, "To copy construct from a tensor", "nerfstudio.cameras.camera_utils"),
     # nerfstudio's datamanagers ask for 4 image-loader processes per device, whatever the core count.
     (UserWarning, "This DataLoader will create", "torch.utils.data.dataloader"),
     # nerfstudio's event writer turns training scalars into floats while they still carry a graph.

@@ -212,12 +212,14 @@ def test_bad_method_spec_stops_the_benchmark_before_anything_runs(tmp_path, monk
 
 def test_matched_nerfacto_has_seathru_lite_capacity():
     from nerfstudio.models.nerfacto import NerfactoModelConfig
+    from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
     from seathru_nerfstudio.config import seathru_nerf_lite_config
     from seathru_nerfstudio.model import SeathruModelConfig
 
     ours, theirs = seathru_nerf_lite_config(), matched_nerfacto_config()
     assert type(theirs.pipeline.model) is NerfactoModelConfig
+    assert type(theirs.pipeline) is VanillaPipelineConfig  # SeathruPipeline drives a SeaThru model's controls
     assert not isinstance(theirs.pipeline.model, SeathruModelConfig)
     for name in (
         "implementation",

@@ -7,7 +7,15 @@ import subprocess
 import sys
 import warnings
 
-from seathru_nerfstudio.quiet import UPSTREAM_WARNINGS, child_environment, pythonwarnings, silence_upstream_warnings
+import pytest
+
+from seathru_nerfstudio.quiet import (
+    UPSTREAM_WARNINGS,
+    KnownWarning,
+    child_environment,
+    pythonwarnings,
+    silence_upstream_warnings,
+)
 
 
 def _shown(message: str, category: type[Warning], module: str) -> bool:
@@ -47,9 +55,15 @@ def test_child_processes_get_the_same_filters():
     assert "custom_fwd" in loud.stderr and "custom_bwd" in loud.stderr  # the upstream warning exists
     assert "custom_fwd" not in quiet.stderr and "custom_bwd" not in quiet.stderr
     assert "ours: still shown" in quiet.stderr
+    assert "Invalid -W option" not in quiet.stderr  # every filter survives PYTHONWARNINGS' syntax
 
 
 def test_the_users_own_pythonwarnings_keep_precedence():
     value = pythonwarnings("error::UserWarning")
     assert value.endswith(",error::UserWarning")  # later -W options take precedence
     assert child_environment({"PYTHONWARNINGS": "error::UserWarning"})["PYTHONWARNINGS"] == value
+
+
+def test_a_filter_that_pythonwarnings_would_split_is_refused():
+    with pytest.raises(ValueError, match="cannot hold"):
+        KnownWarning(UserWarning, "To copy construct from a tensor, it is recommended", "nerfstudio.cameras.camera_utils")

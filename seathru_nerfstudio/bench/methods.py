@@ -28,6 +28,7 @@ import tyro
 
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.models.nerfacto import NerfactoModelConfig
+from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 
 MATCHED_NERFACTO_KEEPS_OWN = ("background_color",)
 """nerfacto fields *not* copied from seathru-nerf-lite: nerfacto keeps its default
@@ -44,7 +45,8 @@ def matched_nerfacto_config() -> TrainerConfig:
     samples, hash 2^15 x 8 levels up to 1024, no appearance embedding, no camera optimizer,
     no distortion loss, same near/far and init density. What stays different is the method
     itself: no medium field, nerfacto's plain L2 loss (seathru: RawNeRF relative L2 + the
-    binary transmittance prior), and nerfacto's ``last_sample`` background.
+    binary transmittance prior), nerfacto's ``last_sample`` background, and nerfstudio's own
+    ``VanillaPipeline`` (``SeathruPipeline`` manages a SeaThru model's water controls).
     """
     from seathru_nerfstudio.config import seathru_nerf_lite_config
 
@@ -56,7 +58,7 @@ def matched_nerfacto_config() -> TrainerConfig:
         if f.name == "_target" or f.name in MATCHED_NERFACTO_KEEPS_OWN or not f.init:
             continue
         kwargs[f.name] = copy.deepcopy(getattr(seathru_model, f.name))
-    config.pipeline.model = NerfactoModelConfig(**kwargs)
+    config.pipeline = VanillaPipelineConfig(datamanager=config.pipeline.datamanager, model=NerfactoModelConfig(**kwargs))
     return config
 
 
