@@ -2,8 +2,9 @@
 
 ``tiny_run`` trains it once through the real CLIs (``seathru-synth``, ``ns-train``); the viewer,
 video and CLI tests all read it and write only into their own folders. ``ns_eval_results`` is
-the real ``ns-eval`` on it, also once. Every test that uses ``tiny_run`` is marked ``slow``
-(``pytest -m "not slow"`` leaves them out).
+the real ``ns-eval`` on it, also once; ``ns_render`` runs nerfstudio's ``ns-render`` entry point
+in-process (the CLI's start-up, importing nerfstudio, is paid once). Every test that uses
+``tiny_run`` is marked ``slow`` (``pytest -m "not slow"`` leaves them out).
 """
 
 from __future__ import annotations
@@ -33,6 +34,26 @@ def ns_eval_results(tiny_run, tmp_path_factory) -> Dict[str, float]:
         tiny_checkpoint.BIN / "ns-eval", "--load-config", tiny_run["config"], "--output-path", output, cwd=output.parent
     )
     return json.loads(output.read_text())["results"]
+
+
+@pytest.fixture
+def ns_render():
+    """``ns_render(*args)``: ``ns-render <args>`` through nerfstudio's own entry point, in this
+    process, with one math thread (the machine's two cores are shared)."""
+    import torch
+    from nerfstudio.scripts import render
+
+    def run(*args) -> None:
+        argv, threads = sys.argv, torch.get_num_threads()
+        sys.argv = ["ns-render", *[str(a) for a in args]]
+        torch.set_num_threads(1)
+        try:
+            render.entrypoint()
+        finally:
+            sys.argv = argv
+            torch.set_num_threads(threads)
+
+    return run
 
 
 def pytest_collection_modifyitems(items) -> None:

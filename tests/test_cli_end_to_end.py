@@ -1,9 +1,9 @@
 """End to end through the real CLIs: seathru-synth -> ns-train (``tiny_run``, once per session)
--> ns-eval (``ns_eval_results``) -> ns-render. Videos of every output: ``test_render_videos.py``."""
+-> ns-eval (``ns_eval_results``) -> ns-render (its entry point in-process; the CLI itself and
+videos of every output: ``test_render_videos.py``)."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -34,15 +34,14 @@ def test_ns_eval_reports_finite_in_medium_clean_and_depth_metrics(ns_eval_result
     assert ns_eval_results["psnr"] > 10
 
 
-def test_ns_render_writes_images_of_several_outputs_in_one_call(tiny_run, tmp_path):
+def test_ns_render_writes_images_of_several_outputs_in_one_call(tiny_run, tmp_path, ns_render):
     import imageio.v3 as iio
 
-    assert shutil.which("ffmpeg"), "ns-render needs ffmpeg on PATH (scripts/setup.sh installs it)"
     images = tmp_path / "frames"
-    tiny_checkpoint.run(
-        tiny_checkpoint.BIN / "ns-render", "interpolate", "--load-config", tiny_run["config"],
+    ns_render(
+        "interpolate", "--load-config", tiny_run["config"],
         "--rendered-output-names", "clean_display", "depth", "--interpolation-steps", "2",
-        "--output-path", images, "--output-format", "images", "--image-format", "png", cwd=tmp_path,
+        "--output-path", images, "--output-format", "images", "--image-format", "png",
     )  # fmt: skip
     pngs = sorted(images.glob("*.png"))
     # interpolate: interpolation_steps frames between each pair of consecutive eval poses

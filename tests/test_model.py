@@ -216,10 +216,11 @@ def test_nerfstudio_checkpoints_load_with_weights_only(tmp_path):
     path = tmp_path / "step-000000001.ckpt"
     torch.save({"step": 1, "schedulers": {"fields": {"_last_lr": [np.float64(0.01)], "base": np.int64(3)}}}, path)
     load = f"import torch; torch.load({str(path)!r}, map_location='cpu')"
-    plain = subprocess.run([sys.executable, "-c", load], capture_output=True, text=True)
+    plain = subprocess.run([sys.executable, "-c", load], capture_output=True, text=True)  # a fresh process
     assert plain.returncode != 0 and "weights_only" in plain.stderr.lower() + plain.stdout.lower()
-    fixed = subprocess.run([sys.executable, "-c", "import seathru_nerfstudio.config; " + load], capture_output=True, text=True)
-    assert fixed.returncode == 0, fixed.stderr[-2000:]
+    import seathru_nerfstudio.config  # noqa: F401  (what ns-train, ns-eval, ns-render import)
+
+    assert torch.load(path, map_location="cpu")["schedulers"]["fields"]["base"] == 3
 
 
 def test_collider_uses_the_scenes_near_bound_when_the_dataparser_gives_one():

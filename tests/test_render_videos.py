@@ -9,8 +9,8 @@
   ``water_split``, ``rgb_display`` and ``clean_display`` in one call: ``water_split``'s left
   half is the video in the water, its right half the clean video, and the two differ.
 
-``ns-render`` runs in-process through its entry point, and the CLI once, in a subprocess, in
-parallel. Needs ffmpeg and PyAV.
+``ns-render`` runs in-process through its entry point (``ns_render``), and the CLI once, in a
+subprocess, in parallel. Needs ffmpeg and PyAV.
 """
 
 from __future__ import annotations
@@ -19,13 +19,11 @@ import json
 import math
 import shutil
 import subprocess
-import sys
 from pathlib import Path
 from typing import Dict, Sequence
 
 import numpy as np
 import pytest
-import torch
 
 import tiny_checkpoint
 from seathru_nerfstudio.viewer import DISPLAY_OUTPUTS, linear_to_srgb
@@ -113,27 +111,7 @@ def path_cli(tiny_run, out_dir):
     log.close()
 
 
-@pytest.fixture(scope="module")
-def ns_render(path_cli):
-    """``ns-render <args>`` in-process, through nerfstudio's own entry point."""
-    from nerfstudio.scripts import render
-
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-
-    def run(*args) -> None:
-        argv = sys.argv
-        sys.argv = ["ns-render", *[str(a) for a in args]]
-        try:
-            render.entrypoint()
-        finally:
-            sys.argv = argv
-
-    yield run
-    torch.set_num_threads(threads)
-
-
-def test_interpolate_renders_every_output_linear_and_display(tiny_run, out_dir, ns_render):
+def test_interpolate_renders_every_output_linear_and_display(tiny_run, out_dir, path_cli, ns_render):
     from nerfstudio.cameras.camera_paths import get_interpolated_camera_path
     from nerfstudio.utils.eval_utils import eval_setup
 
@@ -172,7 +150,7 @@ def test_interpolate_renders_every_output_linear_and_display(tiny_run, out_dir, 
         assert frames[name].max() >= 235, (name, frames[name].max())
 
 
-def test_spiral(tiny_run, out_dir, ns_render):
+def test_spiral(tiny_run, out_dir, path_cli, ns_render):
     spiral = out_dir / "spiral" / "clean.mp4"
     ns_render(
         "spiral", "--load-config", tiny_run["config"], "--output-path", spiral,
