@@ -74,12 +74,14 @@ class SeathruModelConfig(NerfactoModelConfig):
     images' average water colour), then the object field starts. The untrained veiling light
     (0.5) is far brighter than dark water; if the object field learns first, it cancels it with a
     black screen in front of the lens (measured: clean image black, open water opaque)."""
-    medium_envelope_quantile: float = 0.01
-    """In the medium-first stage, both densities also fit the backscatter as this lower quantile
-    of the image at the SfM depths (Sea-thru's dark-pixel estimate,
+    medium_envelope_quantile: float = 0.0
+    """If > 0, in the medium-first stage both densities also fit the backscatter as this lower
+    quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
     :func:`~seathru_nerfstudio.losses.backscatter_envelope_loss`), so that the object field
     starts with a medium estimated from the data instead of ``medium_init_density``;
-    attenuation starts equal to backscatter. 0: off (the densities wait at their initial value)."""
+    attenuation starts equal to backscatter. Experimental, off by default: it improved the
+    geometry on ``fog`` but let the object field wall off the open water on ``water``
+    (docs/benchmarks.md, session 3). 0: the densities wait at their initial value."""
     medium_warmup_steps: int = 0
     """Iterations over which the medium densities ramp up linearly from 0 (clear water); 0: off.
     Experimental: on the demo scene it gave the best in-medium PSNR but baked the water into the

@@ -492,7 +492,7 @@ def test_water_controls_change_the_medium_outside_training_unless_switched_off()
 
 
 def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
-    m = tiny_model(medium_first_steps=5, medium_scope="scene")
+    m = tiny_model(medium_first_steps=5, medium_scope="scene", medium_envelope_quantile=0.01)
     m.train()
     depth = torch.full((32, 1), 0.6)
     depth[16:] = 0.0  # unknown
@@ -522,7 +522,7 @@ def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
         batch["image"], depth * 1.1, veil, sigma_bs, 0.01
     )
     torch.testing.assert_close(losses["backscatter_envelope_loss"].detach(), expected)
-    off = tiny_model(medium_first_steps=5, medium_envelope_quantile=0.0)
+    off = tiny_model(medium_first_steps=5)  # off by default
     off.train()
     off.train_step = 0
     out = off(rays(8))
