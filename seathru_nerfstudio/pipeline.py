@@ -18,6 +18,8 @@ from typing import Any, Iterator, Literal, Optional, Type
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
+from seathru_nerfstudio.model import SeathruModel
+
 
 @dataclass
 class SeathruPipelineConfig(VanillaPipelineConfig):
@@ -40,6 +42,11 @@ class SeathruPipeline(VanillaPipeline):
         grad_scaler: Optional[Any] = None,
     ):
         super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        if not isinstance(self.model, SeathruModel):
+            raise TypeError(
+                f"SeathruPipeline is for SeaThru models, not {type(self.model).__name__}: "
+                "use nerfstudio's VanillaPipelineConfig for other models"
+            )
         # The viewer lists elements under their shortest attribute path: this puts the controls
         # in "Custom Elements/seathru" rather than ".../model/viewer_controls".
         self.seathru = self.model.viewer_controls

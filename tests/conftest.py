@@ -2,7 +2,8 @@
 
 ``tiny_run`` trains it once through the real CLIs (``seathru-synth``, ``ns-train``); the viewer,
 video and CLI tests all read it and write only into their own folders. ``ns_eval_results`` is
-the real ``ns-eval`` on it, also once; ``ns_render`` runs nerfstudio's ``ns-render`` entry point
+the real ``ns-eval`` on it, also once, and ``tiny_pipeline`` its pipeline loaded in this
+process; ``ns_render`` runs nerfstudio's ``ns-render`` entry point
 in-process (the CLI's start-up, importing nerfstudio, is paid once). Every test that uses
 ``tiny_run`` is marked ``slow`` (``pytest -m "not slow"`` leaves them out).
 """
@@ -34,6 +35,15 @@ def ns_eval_results(tiny_run, tmp_path_factory) -> Dict[str, float]:
         tiny_checkpoint.BIN / "ns-eval", "--load-config", tiny_run["config"], "--output-path", output, cwd=output.parent
     )
     return json.loads(output.read_text())["results"]
+
+
+@pytest.fixture(scope="session")
+def tiny_pipeline(tiny_run):
+    """The tiny run's pipeline, loaded as ns-eval and ns-render load it (``eval_setup``), once."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    _, pipeline, _, _ = eval_setup(tiny_run["config"], test_mode="test")
+    return pipeline
 
 
 @pytest.fixture

@@ -37,16 +37,14 @@ def test_ns_eval_reports_finite_in_medium_clean_and_depth_metrics(ns_eval_result
 def test_ns_render_writes_images_of_several_outputs_in_one_call(tiny_run, tmp_path, ns_render):
     import imageio.v3 as iio
 
-    images = tmp_path / "frames"
     ns_render(
-        "interpolate", "--load-config", tiny_run["config"],
-        "--rendered-output-names", "clean_display", "depth", "--interpolation-steps", "2",
-        "--output-path", images, "--output-format", "images", "--image-format", "png",
+        "dataset", "--load-config", tiny_run["config"], "--split", "test",
+        "--rendered-output-names", "clean_display", "depth", "--output-path", tmp_path, "--image-format", "png",
     )  # fmt: skip
-    pngs = sorted(images.glob("*.png"))
-    # interpolate: interpolation_steps frames between each pair of consecutive eval poses
-    assert len(pngs) >= 2
-    frame = iio.imread(pngs[0])
-    assert frame.shape[:2] == (48, 2 * 64)  # the two outputs side by side
-    clean, depth = frame[:, :64, :3], frame[:, 64:, :3]
-    assert clean.std() > 0 and depth.std() > 0 and np.abs(clean.astype(float) - depth).mean() > 5
+    clean = sorted((tmp_path / "test" / "clean_display").rglob("*.png"))
+    depth = sorted((tmp_path / "test" / "depth").rglob("*.png"))
+    assert clean and [p.name for p in clean] == [p.name for p in depth]  # one image per held-out view
+    first_clean, first_depth = iio.imread(clean[0])[..., :3], iio.imread(depth[0])[..., :3]
+    assert first_clean.shape == first_depth.shape == (48, 64, 3)
+    assert first_clean.std() > 0 and first_depth.std() > 0
+    assert np.abs(first_clean.astype(float) - first_depth).mean() > 5

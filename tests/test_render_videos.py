@@ -111,9 +111,8 @@ def path_cli(tiny_run, out_dir):
     log.close()
 
 
-def test_interpolate_renders_every_output_linear_and_display(tiny_run, out_dir, path_cli, ns_render):
+def test_interpolate_renders_every_output_linear_and_display(tiny_run, tiny_pipeline, out_dir, path_cli, ns_render):
     from nerfstudio.cameras.camera_paths import get_interpolated_camera_path
-    from nerfstudio.utils.eval_utils import eval_setup
 
     names = LINEAR_OUTPUTS + DISPLAY_OUTPUTS
     video_path = out_dir / "interpolate" / "all.mp4"
@@ -123,7 +122,7 @@ def test_interpolate_renders_every_output_linear_and_display(tiny_run, out_dir, 
     )  # fmt: skip
 
     # What the video should hold: the eval cameras' interpolated path, at half resolution.
-    _, pipeline, _, _ = eval_setup(tiny_run["config"], test_mode="test")
+    pipeline = tiny_pipeline
     cameras = pipeline.datamanager.eval_dataset.cameras
     path = get_interpolated_camera_path(cameras, steps=2, order_poses=False)
     width, height = int(cameras.width[0]) // 2, int(cameras.height[0]) // 2

@@ -61,14 +61,12 @@ def viewer_process(tiny_run, tmp_path_factory):
 
 
 @pytest.fixture(scope="module")
-def pipeline(tiny_run, viewer_process):
-    from nerfstudio.utils.eval_utils import eval_setup
-
+def pipeline(viewer_process, tiny_pipeline):
+    """The session's pipeline (after the viewer process has started booting), one math thread."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
-    _, pipe, _, _ = eval_setup(tiny_run["config"], test_mode="test")
-    pipe.eval()
-    yield pipe
+    tiny_pipeline.eval()
+    yield tiny_pipeline
     torch.set_num_threads(threads)
 
 
