@@ -19,9 +19,10 @@ mkdir -p "$OUT"
   --timestamp quickstart --vis tensorboard "$@"
 RUN=$OUT/demo-water/seathru-nerf-lite/quickstart
 "$BIN/ns-eval" --load-config "$RUN/config.yml" --output-path "$RUN/eval.json"
-for name in rgb clean backscatter depth; do
-  "$BIN/ns-render" interpolate --load-config "$RUN/config.yml" --rendered-output-names "$name" \
-    --interpolation-steps 10 --frame-rate 10 --output-path "$RUN/renders/$name.mp4"
+# The *_display outputs are tone mapped for the screen (rgb, clean, backscatter are linear radiance).
+for pair in rgb_display:rgb clean_display:clean backscatter_display:backscatter depth:depth; do
+  "$BIN/ns-render" interpolate --load-config "$RUN/config.yml" --rendered-output-names "${pair%%:*}" \
+    --interpolation-steps 10 --frame-rate 10 --output-path "$RUN/renders/${pair##*:}.mp4"
 done
 "$BIN/python" - "$RUN/eval.json" <<'PY'
 import json, sys
@@ -31,4 +32,4 @@ print("quickstart held-out metrics: " + ", ".join(f"{k}={results[k]:.3f}" for k 
 PY
 echo "quickstart: model, checkpoints and TensorBoard logs in $RUN"
 echo "quickstart: metrics in $RUN/eval.json, videos in $RUN/renders/"
-echo "quickstart: browse it with: $BIN/ns-viewer --load-config $RUN/config.yml   (then open http://127.0.0.1:7007)"
+echo "quickstart: browse it with: $BIN/seathru-viewer --load-config $RUN/config.yml   (then open http://127.0.0.1:7007)"
