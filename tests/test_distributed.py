@@ -17,6 +17,8 @@ from torch.nn.parallel import DistributedDataParallel as DDP
 
 from tiny_training import make_scene, tiny_config
 
+pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
+
 WORLD = 2
 ITERATIONS = 4
 

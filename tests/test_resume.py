@@ -19,6 +19,8 @@ import seathru_nerfstudio.config  # noqa: F401,E402  (allow-lists nerfstudio che
 
 from tiny_training import BIN, TINY_MODEL_ARGS, make_scene
 
+pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
+
 TOTAL = 30
 SAVE_EVERY = 15  # late enough that the tiny run has learnt something before the kill
 

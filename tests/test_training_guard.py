@@ -16,6 +16,8 @@ from tiny_training import make_scene, tiny_config
 
 from seathru_nerfstudio.training import GuardedGradScaler, NonFiniteTrainingError, SeathruTrainer
 
+pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
+
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
