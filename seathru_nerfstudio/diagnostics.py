@@ -8,6 +8,9 @@ line every ``diagnostics_every`` steps):
 * ``accumulation``: mean object opacity of the batch's rays;
 * ``accumulation_open_water``: the same on rays whose true range is infinite (synthetic
   scenes only): it should be 0;
+* ``depth_error``: median of ``|depth - true range| / true range`` on rays that hit an object
+  (synthetic scenes only): a surface at the wrong distance means a wrong medium or a wrong
+  clean colour, even when the in-medium image fits;
 * ``medium_beta_D``, ``medium_beta_B`` (per world unit, i.e. 1/m for metric captures) and
   ``medium_B_inf``, per channel, mean over the batch's rays;
 * ``backscatter_share``: the share of the in-medium image that is backscatter.
@@ -35,6 +38,11 @@ def decomposition(outputs: Mapping[str, Tensor], gt_depth: Optional[Tensor], wor
         open_water = ~torch.isfinite(gt_depth.to(outputs["accumulation"].device))
         if open_water.any():
             values["accumulation_open_water"] = outputs["accumulation"].float()[open_water].mean()
+        truth = gt_depth.to(outputs["accumulation"].device).float()
+        hit = torch.isfinite(truth) & (truth > 0)
+        if "depth" in outputs and hit.any():
+            error = (outputs["depth"].float()[hit] - truth[hit]).abs() / truth[hit]
+            values["depth_error"] = error.median()
     media = {
         "beta_D": outputs["medium_attenuation"].float() * world_scale,
         "beta_B": outputs["medium_backscatter"].float() * world_scale,
@@ -58,6 +66,8 @@ def format_line(values: Mapping[str, Tensor]) -> str:
     acc = f"acc {float(values['accumulation']):.2f}"
     if "accumulation_open_water" in values:
         acc += f" (open water {float(values['accumulation_open_water']):.2f})"
+    if "depth_error" in values:
+        acc += f"  depth error {float(values['depth_error']):.2f}"
     return (
         f"{acc}  beta_D {rgb('beta_D')}  beta_B {rgb('beta_B')} /world unit  "
         f"B_inf {rgb('B_inf')}  backscatter share {float(values['backscatter_share']):.2f}"

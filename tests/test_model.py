@@ -366,11 +366,13 @@ def test_training_metrics_carry_the_decomposition_diagnostics(model):
     batch = {"image": torch.rand(16, 3), "gt_depth": gt_depth}
     values = model.get_metrics_dict(out, batch)
     torch.testing.assert_close(values["accumulation_open_water"], out["accumulation"][:4].mean().detach())
+    relative = (out["depth"][4:] - 1.0).abs() / 1.0
+    torch.testing.assert_close(values["depth_error"], relative.median().detach())
     torch.testing.assert_close(values["medium_beta_D_r"], out["medium_attenuation"][:, 0].mean().detach())
     share = out["backscatter"].sum() / out["rgb"].sum()
     torch.testing.assert_close(values["backscatter_share"], share.detach())
     line = diagnostics.format_line(values)
-    assert "open water" in line and "beta_D" in line and "backscatter share" in line
+    assert "open water" in line and "depth error" in line and "beta_D" in line and "backscatter share" in line
 
 
 def test_medium_first_steps_freeze_the_object_field_only():
