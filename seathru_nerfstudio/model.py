@@ -74,6 +74,11 @@ class SeathruModelConfig(NerfactoModelConfig):
     images' average water colour), then the object field starts. The untrained veiling light
     (0.5) is far brighter than dark water; if the object field learns first, it cancels it with a
     black screen in front of the lens (measured: clean image black, open water opaque)."""
+    first_stage_geometry: bool = False
+    """In the ``medium_first_steps`` stage the object *density* also learns, from the SfM depth
+    loss alone (and the proposal samplers from it), while the image still shows an empty scene:
+    the object field enters the full model with the capture's geometry instead of a faint fog,
+    as WaterSplatting starts from the SfM points. The object colour waits for the next stage."""
     medium_envelope_quantile: float = 0.0
     """If > 0, in the medium-first stage both densities also fit the backscatter as this lower
     quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
@@ -187,10 +192,11 @@ class SeathruModel(NerfactoModel):
     def object_frozen(self) -> bool:
         """True in the first ``medium_first_steps`` training steps, where only the medium learns.
 
-        Never with a fixed medium (``medium_oracle``): there would be nothing to learn."""
+        With a fixed medium (``medium_oracle``) only if the geometry learns in it
+        (``first_stage_geometry``): otherwise there would be nothing to learn."""
         medium_learns = any(p.requires_grad for p in self.medium_field.parameters())
         return (
-            medium_learns
+            (medium_learns or self.config.first_stage_geometry)
             and self.training
             and self.train_step is not None
             and self.train_step < self.config.medium_first_steps
@@ -244,6 +250,10 @@ class SeathruModel(NerfactoModel):
             self.camera_optimizer.apply_to_raybundle(ray_bundle)
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
         field_outputs = self.field.forward(ray_samples)
+        geometry_weights = None
+        if self.object_frozen and self.config.first_stage_geometry:
+            # The object geometry alone, for the depth loss and the proposal samplers (not rendered).
+            geometry_weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
         if self.object_frozen:
             # No object yet: every ray shows the veiling light, which fits the images' average
             # water colour; the densities get no gradient from a scene that is not there.
@@ -275,7 +285,7 @@ class SeathruModel(NerfactoModel):
             sigma_bs=medium.sigma_bs,
             quadrature=self.config.quadrature,
         )
-        weights_list.append(render.weights)
+        weights_list.append(render.weights if geometry_weights is None else geometry_weights)
         ray_samples_list.append(ray_samples)
         with torch.no_grad():
             depth = self.renderer_depth(weights=render.weights, ray_samples=ray_samples)
@@ -344,6 +354,11 @@ class SeathruModel(NerfactoModel):
                     "[yellow]seathru: the dataset has no depth images (depth_file_path), so no depth loss: "
                     "seathru-process-data writes sparse SfM depths, seathru-synth writes them too"
                 )
+        if self.object_frozen and not any(loss.requires_grad for loss in loss_dict.values()):
+            raise ValueError(
+                "seathru: nothing learns in the first stage: the medium is fixed (medium_oracle) and the "
+                "dataset has no depth images for first_stage_geometry. Set --pipeline.model.medium-first-steps 0."
+            )
         return loss_dict
 
     def _envelope_loss(self, outputs, batch) -> torch.Tensor:
