@@ -408,6 +408,38 @@ def test_medium_first_steps_do_not_freeze_the_object_field_under_a_fixed_medium(
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
 
 
+def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an_empty_scene(tmp_path):
+    truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
+    (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
+    for medium in ({"medium_scope": "scene"}, {"medium_oracle": tmp_path / "medium.json"}):
+        model = tiny_model(medium_first_steps=5, first_stage_geometry=True, depth_loss_mult=1.0, **medium)
+        model.train()
+        model.train_step = 0
+        assert model.object_frozen  # a fixed medium too: the geometry learns
+        bundle = rays(16, seed=7)
+        bundle.metadata["directions_norm"] = torch.ones(16, 1)
+        out = model(bundle)
+        torch.testing.assert_close(out["rgb"], out["medium_rgb"])  # the image: an empty scene
+        assert out["accumulation"].abs().max() == 0
+        assert out["weights_list"][-1].sum() > 0  # the geometry the depth loss and proposals see
+        batch = {"image": torch.rand(16, 3), "depth_image": torch.full((16, 1), 0.6)}
+        losses = model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))
+        model.zero_grad()
+        sum(losses.values()).backward()
+        head = [p for n, p in model.field.named_parameters() if "mlp_head" in n]
+        assert head and all(p.grad is None or p.grad.abs().sum() == 0 for p in head)  # colour waits
+        base = [p for n, p in model.field.named_parameters() if "mlp_base" in n]
+        assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in base)  # density learns
+        if "medium_oracle" in medium:
+            # No depth images, on a step where the proposal samplers do not update either: nothing
+            # would learn (torch would fail with "does not require grad"); said at once instead.
+            with torch.no_grad():
+                out = model(bundle)
+            no_depth = {"image": batch["image"]}
+            with pytest.raises(ValueError, match="medium-first-steps 0"):
+                model.get_loss_dict(out, no_depth, model.get_metrics_dict(out, no_depth))
+
+
 def test_predict_normals_is_refused_with_a_clear_message():
     with pytest.raises(ValueError, match="predict_normals=True is not supported"):
         SeathruModelConfig(predict_normals=True)
