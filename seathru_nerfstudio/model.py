@@ -26,7 +26,7 @@ from seathru_nerfstudio import diagnostics, metrics, viewer
 from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import FixedMedium, MediumField, MediumOutputs, SceneMedium
-from seathru_nerfstudio.rendering import Quadrature, render_seathru
+from seathru_nerfstudio.rendering import Quadrature, exclusive_optical_depth, one_minus_exp, render_seathru
 
 @dataclass
 class SeathruModelConfig(NerfactoModelConfig):
@@ -76,9 +76,10 @@ class SeathruModelConfig(NerfactoModelConfig):
     black screen in front of the lens (measured: clean image black, open water opaque)."""
     first_stage_geometry: bool = False
     """In the ``medium_first_steps`` stage the object *density* also learns, from the SfM depth
-    loss alone (and the proposal samplers from it), while the image still shows an empty scene:
-    the object field enters the full model with the capture's geometry instead of a faint fog,
-    as WaterSplatting starts from the SfM points. The object colour waits for the next stage."""
+    loss and the empty-space prior (the proposal samplers follow it), while the image still
+    shows an empty scene: the object field enters the full model with the capture's geometry
+    instead of a faint fog, as WaterSplatting starts from the SfM points. The object colour
+    waits for the next stage."""
     medium_envelope_quantile: float = 0.0
     """If > 0, in the medium-first stage both densities also fit the backscatter as this lower
     quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
@@ -250,10 +251,13 @@ class SeathruModel(NerfactoModel):
             self.camera_optimizer.apply_to_raybundle(ray_bundle)
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
         field_outputs = self.field.forward(ray_samples)
-        geometry_weights = None
+        geometry = None
         if self.object_frozen and self.config.first_stage_geometry:
-            # The object geometry alone, for the depth loss and the proposal samplers (not rendered).
-            geometry_weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+            # The object geometry alone (not rendered): its weights for the depth loss and the
+            # proposal samplers, its transmittance for the empty-space prior.
+            density, delta = field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas
+            transmittance = torch.exp(-exclusive_optical_depth(density, delta)[..., :-1, :])
+            geometry = (transmittance * one_minus_exp(density * delta), transmittance)
         if self.object_frozen:
             # No object yet: every ray shows the veiling light, which fits the images' average
             # water colour; the densities get no gradient from a scene that is not there.
@@ -285,7 +289,7 @@ class SeathruModel(NerfactoModel):
             sigma_bs=medium.sigma_bs,
             quadrature=self.config.quadrature,
         )
-        weights_list.append(render.weights if geometry_weights is None else geometry_weights)
+        weights_list.append(render.weights if geometry is None else geometry[0])
         ray_samples_list.append(ray_samples)
         with torch.no_grad():
             depth = self.renderer_depth(weights=render.weights, ray_samples=ray_samples)
@@ -304,7 +308,7 @@ class SeathruModel(NerfactoModel):
         if self.training:
             outputs["weights_list"] = weights_list
             outputs["ray_samples_list"] = ray_samples_list
-            outputs["transmittance"] = render.transmittance
+            outputs["transmittance"] = render.transmittance if geometry is None else geometry[1]
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
             if densities_for_envelope is not None:

@@ -422,6 +422,10 @@ def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an
         torch.testing.assert_close(out["rgb"], out["medium_rgb"])  # the image: an empty scene
         assert out["accumulation"].abs().max() == 0
         assert out["weights_list"][-1].sum() > 0  # the geometry the depth loss and proposals see
+        # the prior sees the geometry's transmittance: T_0 = 1 and w_i = T_i - T_{i+1}
+        weights, transmittance = out["weights_list"][-1], out["transmittance"]
+        assert torch.all(transmittance[..., 0, :] == 1) and transmittance.requires_grad
+        torch.testing.assert_close(weights[..., :-1, :], transmittance[..., :-1, :] - transmittance[..., 1:, :])
         batch = {"image": torch.rand(16, 3), "depth_image": torch.full((16, 1), 0.6)}
         losses = model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))
         model.zero_grad()
