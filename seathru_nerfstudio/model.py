@@ -26,7 +26,7 @@ from seathru_nerfstudio import diagnostics, metrics, viewer
 from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import FixedMedium, MediumField, MediumOutputs, SceneMedium
-from seathru_nerfstudio.rendering import Quadrature, exclusive_optical_depth, one_minus_exp, render_seathru
+from seathru_nerfstudio.rendering import Quadrature, object_weights, render_seathru
 
 @dataclass
 class SeathruModelConfig(NerfactoModelConfig):
@@ -258,9 +258,7 @@ class SeathruModel(NerfactoModel):
         if self.object_frozen and self.config.first_stage_geometry:
             # The object geometry alone (not rendered): its weights for the depth loss and the
             # proposal samplers, its transmittance for the empty-space prior.
-            density, delta = field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas
-            transmittance = torch.exp(-exclusive_optical_depth(density, delta)[..., :-1, :])
-            geometry = (transmittance * one_minus_exp(density * delta), transmittance)
+            geometry = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)[:2]
         if self.object_frozen:
             # No object yet: every ray shows the veiling light, which fits the images' average
             # water colour; the densities get no gradient from a scene that is not there.

@@ -71,6 +71,23 @@ def exclusive_optical_depth(
     return torch.cat([zeros, torch.cumsum(densities * deltas, dim=-2)], dim=-2)
 
 
+def object_weights(
+    object_density: Float[Tensor, "*batch S 1"], deltas: Float[Tensor, "*batch S 1"]
+) -> tuple[Float[Tensor, "*batch S 1"], Float[Tensor, "*batch S 1"], Float[Tensor, "*batch S+1 1"]]:
+    """The object alone, without the medium: weights ``w_i = T_i (1 - e^{-sigma_obj,i delta_i})``,
+    transmittance ``T_i = e^{-tau_i}`` at each interval start, and the optical depths ``tau_i``
+    (:func:`exclusive_optical_depth`, the last one at the end of the ray). Densities are clamped to ``[0, SIGMA_MAX]`` and deltas to ``>= 0``;
+    float32 (float64 for float64 inputs) with autocast disabled, so any finite input gives
+    finite outputs."""
+    dtype = torch.promote_types(object_density.dtype, torch.float32)
+    with torch.autocast(device_type=object_density.device.type, enabled=False):
+        sigma_obj = object_density.to(dtype).clamp(0.0, SIGMA_MAX)
+        delta = deltas.to(dtype).clamp_min(0.0)
+        tau = exclusive_optical_depth(sigma_obj, delta)  # [..., S+1, 1]
+        transmittance = torch.exp(-tau[..., :-1, :])
+        return transmittance * one_minus_exp(sigma_obj * delta), transmittance, tau
+
+
 def absorbed_fraction(
     sigma_part: Tensor, sigma_total: Tensor, delta: Tensor
 ) -> Tensor:
@@ -141,10 +158,8 @@ def render_seathru(
         attn = sigma_attn.to(dtype).clamp(0.0, SIGMA_MAX)[..., None, :]
         bs = sigma_bs.to(dtype).clamp(0.0, SIGMA_MAX)[..., None, :]
 
-        tau = exclusive_optical_depth(sigma_obj, delta)  # [..., S+1, 1]
+        weights, transmittance, tau = object_weights(sigma_obj, delta)  # tau: [..., S+1, 1]
         tau_start, tau_end = tau[..., :-1, :], tau[..., -1:, :]
-        transmittance = torch.exp(-tau_start)
-        weights = transmittance * one_minus_exp(sigma_obj * delta)
 
         # Object transmittance and medium attenuation combined in log space: one exp.
         reach_direct = torch.exp(-(tau_start + attn * s))  # [..., S, 3]

@@ -7,7 +7,7 @@ import itertools
 import pytest
 import torch
 
-from seathru_nerfstudio.rendering import absorbed_fraction, formation_model, render_seathru
+from seathru_nerfstudio.rendering import absorbed_fraction, formation_model, object_weights, render_seathru
 
 
 
@@ -281,3 +281,37 @@ def test_formation_model_at_infinite_range_is_the_veiling_light():
     torch.testing.assert_close(out[0], J)
     torch.testing.assert_close(out[1], J * torch.exp(-BETA_D) + B_INF * (1 - torch.exp(-BETA_B)))
     torch.testing.assert_close(out[2], B_INF)
+
+
+def test_object_weights_are_nerfstudios_and_the_renderers():
+    """The object alone: nerfstudio's weights, T_0 = 1, w_i = T_i - T_{i+1}, the renderer's own
+    weights and accumulation; finite for stiff densities and under half-precision autocast."""
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    gen = torch.Generator().manual_seed(3)
+    batch, num = 4, 24
+    starts, deltas = uneven_bins(num, 0.1, 5.0, seed=2)
+    starts, deltas = starts.expand(batch, num, 1), deltas.expand(batch, num, 1)
+    density = torch.rand(batch, num, 1, generator=gen) * 4.0
+    samples = RaySamples(
+        frustums=Frustums(
+            origins=torch.zeros(batch, num, 3), directions=torch.ones(batch, num, 3) / 3**0.5,
+            starts=starts, ends=starts + deltas, pixel_area=torch.ones(batch, num, 1),
+        ),
+        deltas=deltas,
+    )  # fmt: skip
+    weights, transmittance, tau = object_weights(density, deltas)
+    torch.testing.assert_close(weights, samples.get_weights(density))
+    assert torch.all(transmittance[:, 0] == 1) and tau.shape == (batch, num + 1, 1)
+    torch.testing.assert_close(weights[:, :-1], transmittance[:, :-1] - transmittance[:, 1:])
+    out = render(torch.rand(batch, num, 3, generator=gen), density, starts, deltas)
+    torch.testing.assert_close(out.weights, weights)
+    torch.testing.assert_close(out.accumulation, -torch.expm1(-tau[:, -1]))
+
+    stiff = torch.tensor([0.0, 1e30, float("inf"), 1e-30])[None, :, None]
+    w, t, _ = object_weights(stiff, torch.tensor([1.0, 1e-9, 1.0, 1e30])[None, :, None])
+    assert torch.isfinite(w).all() and torch.isfinite(t).all()
+    for half in (torch.float16, torch.bfloat16):
+        with torch.autocast(device_type="cpu", dtype=half):
+            w, t, _ = object_weights(torch.full((2, 8, 1), 6e4).to(half), torch.full((2, 8, 1), 1e3).to(half))
+        assert w.dtype == torch.float32 and torch.isfinite(w).all() and torch.isfinite(t).all()
