@@ -13,7 +13,9 @@ line every ``diagnostics_every`` steps):
   clean colour, even when the in-medium image fits;
 * ``medium_beta_D``, ``medium_beta_B`` (per world unit, i.e. 1/m for metric captures) and
   ``medium_B_inf``, per channel, mean over the batch's rays;
-* ``backscatter_share``: the share of the in-medium image that is backscatter.
+* ``backscatter_share``: the share of the in-medium image that is backscatter;
+* ``medium_model`` (added by the model): the medium model in use, as its index in
+  :data:`~seathru_nerfstudio.medium_field.MEDIUM_MODELS` (-1: ``auto`` before its decision).
 """
 
 from __future__ import annotations
@@ -22,6 +24,8 @@ from typing import Dict, Mapping, Optional
 
 import torch
 from torch import Tensor
+
+from seathru_nerfstudio.medium_field import MEDIUM_MODELS
 
 CHANNELS = ("r", "g", "b")
 
@@ -68,7 +72,11 @@ def format_line(values: Mapping[str, Tensor]) -> str:
         acc += f" (open water {float(values['accumulation_open_water']):.2f})"
     if "depth_error" in values:
         acc += f"  depth error {float(values['depth_error']):.2f}"
+    model = ""
+    if "medium_model" in values:
+        code = int(values["medium_model"])
+        model = f"medium {MEDIUM_MODELS[code] if 0 <= code < len(MEDIUM_MODELS) else 'auto (deciding)'}  "
     return (
-        f"{acc}  beta_D {rgb('beta_D')}  beta_B {rgb('beta_B')} /world unit  "
+        f"{model}{acc}  beta_D {rgb('beta_D')}  beta_B {rgb('beta_B')} /world unit  "
         f"B_inf {rgb('B_inf')}  backscatter share {float(values['backscatter_share']):.2f}"
     )

@@ -8,12 +8,17 @@ per sample. Three variants share one interface, ``medium(directions) -> MediumOu
 * :class:`SceneMedium`, nine learned constants (``per-scene``): one homogeneous water
   body, which is what the SeaThru image formation model assumes;
 * :class:`FixedMedium`, given constants (an oracle for experiments: the true medium).
+
+Each of them has six densities; :func:`tie` makes the simpler medium models of
+:data:`MEDIUM_MODELS` from them by averaging (``fog``: one density for everything,
+``uniform``: one per channel for attenuation and backscatter), so that every model has the
+same parameters and a switch between models keeps the medium learned so far.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Dict, Literal, Sequence, Tuple
 
 import torch
 from jaxtyping import Float
@@ -35,6 +40,58 @@ class MediumOutputs:
     """``sigma_attn``: attenuation of the direct signal (``beta_D``)."""
     sigma_bs: Float[Tensor, "*batch 3"]
     """``sigma_bs``: backscatter density (``beta_B``)."""
+
+
+MediumModel = Literal["none", "fog", "uniform", "seathru", "basic"]
+"""How much medium a scene gets (``SeathruModelConfig.medium_model``):
+
+* ``none``: clear air; nothing is evaluated, ``rgb = clean`` (nerfacto's rendering);
+* ``fog``: one wavelength-independent density for attenuation and backscatter;
+* ``uniform``: one density per channel, shared by attenuation and backscatter;
+* ``seathru``: separate attenuation and backscatter densities per channel (sec. 4.3, "final");
+* ``basic``: the paper's basic model (sec. 4.1, eqs. 11-13: one medium density per channel),
+  kept under its own name for the ablation; it ties the densities as ``uniform`` does.
+"""
+
+MEDIUM_MODELS: Tuple[str, ...] = ("none", "fog", "uniform", "seathru", "basic")
+"""Every medium model, the simplest first; a model's index here is what checkpoints record."""
+
+FREE_DENSITIES: Dict[str, int] = {"none": 0, "fog": 1, "uniform": 3, "seathru": 6, "basic": 3}
+"""How many medium densities each model learns (per ray or per scene)."""
+
+
+def tie(medium: "MediumOutputs", model: str) -> "MediumOutputs":
+    """``medium`` with its densities tied as ``model`` asks, by averaging: ``fog`` gives every
+    channel of both densities the mean of the six, ``uniform`` and ``basic`` give attenuation
+    and backscatter their per-channel mean, ``seathru`` keeps them. (``none`` has no medium:
+    the model never calls this for it.) With tied inputs the result is the input."""
+    if model == "seathru":
+        return medium
+    if model == "fog":
+        sigma = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1).mean(dim=-1, keepdim=True)
+        sigma = sigma.expand_as(medium.sigma_attn)
+    elif model in ("uniform", "basic"):
+        sigma = 0.5 * (medium.sigma_attn + medium.sigma_bs)
+    else:
+        raise ValueError(f"tie: no medium densities for model {model!r}; expected one of {MEDIUM_MODELS[1:]}")
+    return MediumOutputs(rgb=medium.rgb, sigma_attn=sigma, sigma_bs=sigma)
+
+
+def clear_medium(directions: Float[Tensor, "*batch 3"]) -> "MediumOutputs":
+    """The ``none`` model's medium, exactly: no veiling light and zero densities (the
+    outputs contract holds these values without evaluating any medium)."""
+    zeros = torch.zeros_like(directions, dtype=torch.float32)
+    return MediumOutputs(rgb=zeros, sigma_attn=zeros, sigma_bs=zeros)
+
+
+def blend_media(start: "MediumOutputs", end: "MediumOutputs", weight: float) -> "MediumOutputs":
+    """``(1 - weight) start + weight end``, colour and densities alike (``weight`` in [0, 1])."""
+    def mix(a: Tensor, b: Tensor) -> Tensor:
+        return torch.lerp(a, b.to(a.dtype), weight)
+
+    return MediumOutputs(
+        rgb=mix(start.rgb, end.rgb), sigma_attn=mix(start.sigma_attn, end.sigma_attn), sigma_bs=mix(start.sigma_bs, end.sigma_bs)
+    )
 
 
 class MediumField(nn.Module):

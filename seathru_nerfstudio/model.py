@@ -23,10 +23,23 @@ from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio import diagnostics, metrics, viewer
+from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
 from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
-from seathru_nerfstudio.medium_field import FixedMedium, MediumField, MediumOutputs, SceneMedium
-from seathru_nerfstudio.rendering import Quadrature, object_weights, render_seathru
+from seathru_nerfstudio.medium_field import (
+    MEDIUM_MODELS,
+    FixedMedium,
+    MediumField,
+    MediumOutputs,
+    SceneMedium,
+    blend_media,
+    clear_medium,
+    tie,
+)
+from seathru_nerfstudio.rendering import Quadrature, SeathruRender, object_weights, render_seathru
+
+UNDECIDED = -1
+"""``medium_model_code`` of an ``auto`` run before its decision (it renders ``seathru``)."""
 
 @dataclass
 class SeathruModelConfig(NerfactoModelConfig):
@@ -64,9 +77,24 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Spread of the depth loss, in world units (metres)."""
     diagnostics_every: int = 100
     """Print one line of decomposition diagnostics every this many steps; 0: never."""
-    medium_model: Literal["final", "basic"] = "final"
-    """``final``: separate sigma_attn and sigma_bs (sec. 4.3). ``basic``: one medium density
-    for both (eqs. 11-13), for the ablation."""
+    medium_model: Literal["auto", "none", "fog", "uniform", "seathru", "basic"] = "seathru"
+    """How much medium the scene gets (:data:`~seathru_nerfstudio.medium_field.MediumModel`):
+    ``none`` (clear air: nerfacto's rendering, no medium evaluated), ``fog`` (one density),
+    ``uniform`` (one density per channel), ``seathru`` (attenuation and backscatter per channel,
+    sec. 4.3; ``final`` in older configs), ``basic`` (sec. 4.1, for the ablation). ``auto``:
+    ``seathru`` until ``medium_auto_decision_step``, then the simplest model its medium allows
+    (:mod:`~seathru_nerfstudio.medium_choice`). The model in use is saved in checkpoints."""
+    medium_auto_decision_step: int = 500
+    """``auto``: the step at which the medium model is chosen (after ``medium_first_steps``)."""
+    medium_auto_evidence_steps: int = 50
+    """``auto``: the evidence is the mean over this many steps before the decision."""
+    medium_auto_rule: ChoiceRule = field(default_factory=ChoiceRule)
+    """``auto``: thresholds of the decision."""
+    medium_auto_blend_steps: int = 200
+    """``auto``: after the decision the medium moves linearly from the learned ``seathru`` medium
+    to the chosen model over this many steps, so that the object colour can follow (measured on
+    a tiny clear scene: an abrupt switch to ``none`` brightened every pixel at once, and the
+    object opacity fell from 0.75 to 0.20 within 20 steps)."""
     far_bound_margin: float = 2.0
     """If > 0 and the dataparser gives the scene's far bound (SfM depths, poses_bounds.npy),
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
@@ -123,6 +151,20 @@ class SeathruModelConfig(NerfactoModelConfig):
     def check(self) -> None:
         """Refuse settings this model cannot train with, at once and saying why (also called when
         the model is built, for configs changed after construction)."""
+        if self.medium_model == "final":  # the name of ``seathru`` in configs saved before it had one
+            self.medium_model = "seathru"
+        if self.medium_model != "auto" and self.medium_model not in MEDIUM_MODELS:
+            raise ValueError(
+                f"seathru: unknown medium_model {self.medium_model!r}; expected auto or one of {', '.join(MEDIUM_MODELS)}"
+            )
+        if self.medium_model == "auto" and not (
+            self.medium_first_steps < self.medium_auto_decision_step and 0 < self.medium_auto_evidence_steps
+        ):
+            raise ValueError(
+                "seathru: medium_model auto decides at medium_auto_decision_step "
+                f"({self.medium_auto_decision_step}), which must come after medium_first_steps "
+                f"({self.medium_first_steps}), from medium_auto_evidence_steps ({self.medium_auto_evidence_steps}) > 0 steps"
+            )
         if self.predict_normals:
             raise ValueError(
                 "seathru: predict_normals=True is not supported: SeathruModel renders no normals, so "
@@ -148,6 +190,14 @@ class SeathruModel(NerfactoModel):
         self.world_scale = float(metadata.get(SCALE_KEY, 1.0))
         """Scene units per world unit (metre): a density per scene unit times this is per metre."""
         self.medium_field = self._build_medium()
+        code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
+        self.register_buffer("medium_model_code", torch.tensor(code, dtype=torch.long))
+        """Index in ``MEDIUM_MODELS`` of the medium model in use (``UNDECIDED``: ``auto`` before its
+        decision); a buffer, so that checkpoints record the model ``auto`` chose."""
+        self.register_buffer("medium_model_step", torch.tensor(-1, dtype=torch.long))
+        """The step at which ``auto`` decided (-1: it did not), where the blend to the choice starts."""
+        self.auto_evidence: List[MediumEvidence] = []
+        """``auto``: the evidence of the steps before the decision."""
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
         if "near_plane" in metadata:
@@ -183,6 +233,28 @@ class SeathruModel(NerfactoModel):
             implementation=self.config.implementation,
         )
 
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
+        # Checkpoints from before the medium model was recorded: the model of the config.
+        state_dict.setdefault(prefix + "medium_model_code", self.medium_model_code.clone())
+        state_dict.setdefault(prefix + "medium_model_step", self.medium_model_step.clone())
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
+    @property
+    def medium_model(self) -> str:
+        """The medium model in use: the config's, or what ``auto`` chose (``seathru`` before)."""
+        code = int(self.medium_model_code)
+        return "seathru" if code == UNDECIDED else MEDIUM_MODELS[code]
+
+    @property
+    def medium_blend(self) -> float:
+        """How far the medium has moved from ``seathru`` to the chosen model since ``auto``
+        decided: 0 -> 1 over ``medium_auto_blend_steps``; 1 without a decision to blend from,
+        and in a loaded model (no training step)."""
+        since = int(self.medium_model_step)
+        if since < 0 or self.train_step is None or self.config.medium_auto_blend_steps <= 0:
+            return 1.0
+        return min(1.0, max(0.0, (self.train_step - since) / self.config.medium_auto_blend_steps))
+
     @property
     def medium_ramp(self) -> float:
         """Scale on the medium densities: 0 -> 1 over the warm-up, 1 afterwards (and when a
@@ -198,7 +270,7 @@ class SeathruModel(NerfactoModel):
 
         With a fixed medium (``medium_oracle``) only if the geometry learns in it
         (``first_stage_geometry``): otherwise there would be nothing to learn."""
-        medium_learns = any(p.requires_grad for p in self.medium_field.parameters())
+        medium_learns = self.medium_model != "none" and any(p.requires_grad for p in self.medium_field.parameters())
         return (
             (medium_learns or self.config.first_stage_geometry)
             and self.training
@@ -223,6 +295,15 @@ class SeathruModel(NerfactoModel):
         def set_step(step: int) -> None:
             self.train_step = step
 
+        if self.config.medium_model == "auto":
+            callbacks.append(
+                TrainingCallback(
+                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    update_every_num_iters=1,
+                    func=self._decide_medium_model,
+                )
+            )
+
         callbacks.append(
             TrainingCallback(
                 where_to_run=[TrainingCallbackLocation.BEFORE_TRAIN_ITERATION],
@@ -231,6 +312,64 @@ class SeathruModel(NerfactoModel):
             )
         )
         return callbacks
+
+    def _decide_medium_model(self, step: int) -> None:
+        """``auto``: at ``medium_auto_decision_step``, keep the simplest medium model the warm-up's
+        medium allows. Only the tying of the medium changes: the object field and the medium's
+        parameters carry on as they are (a tied model starts from the mean of what was learned)."""
+        if int(self.medium_model_code) != UNDECIDED or step + 1 < self.config.medium_auto_decision_step:
+            return
+        evidence = self._mean_evidence()
+        if evidence is None:
+            return  # resumed right before the decision: gather the evidence first
+        chosen, reason = choose_medium_model(evidence, self.config.medium_auto_rule)
+        self.medium_model_code.fill_(MEDIUM_MODELS.index(chosen))
+        self.medium_model_step.fill_(step + 1)
+        self.auto_evidence.clear()
+        CONSOLE.print(f"[bold]seathru step {step}: medium model auto -> {chosen}[/] ({reason})")
+
+    def _record_evidence(self, values: Dict[str, torch.Tensor]) -> None:
+        """``auto``: keep this step's medium diagnostics if the decision is near."""
+        step = self.train_step
+        if (
+            int(self.medium_model_code) != UNDECIDED
+            or step is None
+            or step < self.config.medium_auto_decision_step - self.config.medium_auto_evidence_steps
+        ):
+            return
+
+        def rgb(name: str):
+            return tuple(float(values[f"medium_{name}_{c}"]) for c in diagnostics.CHANNELS)
+
+        self.auto_evidence.append(
+            MediumEvidence(
+                backscatter_share=float(values["backscatter_share"]),
+                beta_D=rgb("beta_D"),
+                beta_B=rgb("beta_B"),
+                B_inf=rgb("B_inf"),
+            )
+        )
+
+    def _mean_evidence(self) -> Optional[MediumEvidence]:
+        """The mean of the recorded evidence, over every process of a distributed run (so that
+        all of them choose the same model); ``None`` if nothing was recorded."""
+        if not self.auto_evidence:
+            return None
+        rows = torch.tensor(
+            [[e.backscatter_share, *e.beta_D, *e.beta_B, *e.B_inf] for e in self.auto_evidence], dtype=torch.float64
+        )
+        mean = rows.mean(dim=0)
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            mean = mean.to(self.device)
+            torch.distributed.all_reduce(mean)
+            mean = mean.cpu() / torch.distributed.get_world_size()
+        values = [float(v) for v in mean]
+        return MediumEvidence(
+            backscatter_share=values[0],
+            beta_D=tuple(values[1:4]),
+            beta_B=tuple(values[4:7]),
+            B_inf=tuple(values[7:10]),
+        )
 
     def _print_diagnostics(self, step: int) -> None:
         values = self.last_diagnostics
@@ -266,7 +405,18 @@ class SeathruModel(NerfactoModel):
             field_outputs[FieldHeadNames.DENSITY] = torch.zeros_like(field_outputs[FieldHeadNames.DENSITY])
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
-        medium = self.medium_field(ray_bundle.directions)  # once per ray
+        blend = self.medium_blend
+        if self.medium_model == "none" and blend >= 1.0:
+            render = self._render_clear_air(field_outputs, ray_samples)
+            medium = clear_medium(ray_bundle.directions)
+            return self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry)
+        learned = self.medium_field(ray_bundle.directions)  # once per ray
+        if self.medium_model == "none":
+            medium = clear_medium(ray_bundle.directions)
+        else:
+            medium = tie(learned, self.medium_model)
+        if blend < 1.0:  # auto, just after its decision
+            medium = blend_media(learned, medium, blend)
         if not self.training and self.medium_controls_enabled:
             medium = self.viewer_controls.medium(medium)  # the viewer's water density and colour
         densities_for_envelope = None
@@ -279,17 +429,51 @@ class SeathruModel(NerfactoModel):
         ramp = self.medium_ramp
         if ramp < 1.0:
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn * ramp, sigma_bs=medium.sigma_bs * ramp)
-        sigma_attn = medium.sigma_bs if self.config.medium_model == "basic" else medium.sigma_attn
         render = render_seathru(
             object_rgb=field_outputs[FieldHeadNames.RGB],
             object_density=field_outputs[FieldHeadNames.DENSITY],
             starts=ray_samples.frustums.starts,
             deltas=ray_samples.deltas,
             medium_rgb=medium.rgb,
-            sigma_attn=sigma_attn,
+            sigma_attn=medium.sigma_attn,
             sigma_bs=medium.sigma_bs,
             quadrature=self.config.quadrature,
         )
+        return self._collect_outputs(
+            ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, densities_for_envelope
+        )
+
+    def _render_clear_air(self, field_outputs, ray_samples) -> SeathruRender:
+        """The ``none`` model: nerfacto's rendering (nerfstudio's weights and ``RGBRenderer``),
+        with the contract's medium outputs at their exact values: ``rgb = direct = clean``, zero
+        backscatter."""
+        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+        rgb = self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights)
+        accumulation = self.renderer_accumulation(weights=weights)
+        transmittance = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)[1]
+        return SeathruRender(
+            rgb=rgb,
+            direct=rgb,
+            backscatter=torch.zeros_like(rgb),
+            clean=rgb,
+            weights=weights,
+            transmittance=transmittance,
+            accumulation=accumulation,
+        )
+
+    def _collect_outputs(
+        self,
+        ray_bundle: RayBundle,
+        ray_samples,
+        weights_list: list,
+        ray_samples_list: list,
+        render: SeathruRender,
+        medium: MediumOutputs,
+        geometry: Optional[tuple] = None,
+        densities_for_envelope: Optional[torch.Tensor] = None,
+    ) -> Dict[str, torch.Tensor]:
+        """The outputs contract of one batch of rays, from a render and its (tied) medium;
+        ``geometry``: the first stage's object weights and transmittance, for the losses."""
         weights_list.append(render.weights if geometry is None else geometry[0])
         ray_samples_list.append(ray_samples)
         with torch.no_grad():
@@ -303,7 +487,7 @@ class SeathruModel(NerfactoModel):
             "expected_depth": self.renderer_expected_depth(weights=render.weights, ray_samples=ray_samples),
             "accumulation": render.accumulation,
             "medium_rgb": medium.rgb,
-            "medium_attenuation": sigma_attn,
+            "medium_attenuation": medium.sigma_attn,
             "medium_backscatter": medium.sigma_bs,
         }
         if self.training:
@@ -331,6 +515,10 @@ class SeathruModel(NerfactoModel):
         metrics_dict = super().get_metrics_dict(outputs, batch)
         if self.training:
             values = diagnostics.decomposition(outputs, batch.get("gt_depth"), self.world_scale)
+            if self.config.medium_model == "auto":
+                self._record_evidence(values)
+            # The model in use, as its index in MEDIUM_MODELS (-1: auto, not decided yet).
+            values["medium_model"] = self.medium_model_code.detach().clone()
             metrics_dict.update(values)  # TensorBoard: "Train Metrics Dict/..."
             self.last_diagnostics = values
         return metrics_dict

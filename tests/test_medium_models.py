@@ -1,0 +1,217 @@
+"""Medium models from ``none`` to ``seathru`` and ``auto``'s choice between them (issue 10)."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.models.nerfacto import NerfactoModelConfig
+
+from seathru_nerfstudio import metrics
+from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
+from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumOutputs, tie
+from seathru_nerfstudio.model import UNDECIDED
+from seathru_nerfstudio.rendering import render_seathru
+
+from test_model import rays
+from tiny_training import tiny_model
+
+
+def count_medium_calls(model) -> list:
+    """Replace the model's medium's forward by a counting spy; returns the list of calls."""
+    calls = []
+    original = model.medium_field.forward
+
+    def spy(directions):
+        calls.append(directions.shape)
+        return original(directions)
+
+    model.medium_field.forward = spy
+    return calls
+
+
+def test_none_renders_what_nerfacto_renders_from_the_same_field_and_never_calls_the_medium():
+    torch.manual_seed(0)
+    ours = tiny_model(medium_model="none", object_view_dependent=True)
+    kwargs = {
+        f.name: getattr(ours.config, f.name)
+        for f in dataclasses.fields(NerfactoModelConfig)
+        if f.init and f.name != "_target"
+    }
+    with metrics.offline_lpips():
+        nerfacto = NerfactoModelConfig(**kwargs).setup(
+            scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4
+        )
+    ours_state = ours.state_dict()
+    missing = [key for key in nerfacto.state_dict() if key not in ours_state]
+    assert not missing, missing
+    nerfacto.load_state_dict({key: ours_state[key] for key in nerfacto.state_dict()})
+    calls = count_medium_calls(ours)
+    bundle = rays(64, seed=3)
+    for training in (True, False):
+        ours.train(training)
+        nerfacto.train(training)
+        torch.manual_seed(1)  # the proposal sampler jitters while training
+        mine = ours(bundle)
+        torch.manual_seed(1)
+        theirs = nerfacto(bundle)
+        for name in ("rgb", "accumulation", "depth", "expected_depth"):
+            torch.testing.assert_close(mine[name], theirs[name], rtol=0, atol=1e-6, msg=name)
+        torch.testing.assert_close(mine["clean"], mine["rgb"], rtol=0, atol=0)
+        torch.testing.assert_close(mine["direct"], mine["rgb"], rtol=0, atol=0)
+        for name in ("backscatter", "medium_rgb", "medium_attenuation", "medium_backscatter"):
+            assert mine[name].shape == (64, 3) and bool((mine[name] == 0).all()), name
+    assert calls == []
+    assert ours.object_frozen is False or ours.train_step is None
+
+
+def test_none_trains_from_step_0_with_no_medium_stage():
+    model = tiny_model(medium_model="none")
+    model.train()
+    model.train_step = 0
+    assert not model.object_frozen
+    out = model(rays(16))
+    losses = model.get_loss_dict(out, {"image": torch.rand(16, 3)}, model.get_metrics_dict(out, {"image": torch.rand(16, 3)}))
+    sum(losses.values()).backward()
+    assert all(p.grad is None for p in model.medium_field.parameters())
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
+
+
+def test_tie_averages_the_densities_as_each_model_asks():
+    gen = torch.Generator().manual_seed(0)
+    medium = MediumOutputs(
+        rgb=torch.rand(5, 3, generator=gen), sigma_attn=torch.rand(5, 3, generator=gen), sigma_bs=torch.rand(5, 3, generator=gen)
+    )
+    fog = tie(medium, "fog")
+    expected = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1).mean(dim=-1, keepdim=True).expand(5, 3)
+    torch.testing.assert_close(fog.sigma_attn, expected)
+    torch.testing.assert_close(fog.sigma_bs, expected)
+    for name in ("uniform", "basic"):
+        tied = tie(medium, name)
+        torch.testing.assert_close(tied.sigma_attn, (medium.sigma_attn + medium.sigma_bs) / 2)
+        torch.testing.assert_close(tied.sigma_bs, tied.sigma_attn)
+    assert tie(medium, "seathru") is medium
+    with pytest.raises(ValueError, match="none"):
+        tie(medium, "none")
+
+
+@pytest.mark.parametrize("name", ["fog", "uniform"])
+def test_fog_and_uniform_reduce_exactly_to_seathru_with_tied_parameters(name):
+    torch.manual_seed(0)
+    tied = tiny_model(medium_model=name, medium_scope="scene")
+    full = tiny_model(medium_model="seathru", medium_scope="scene")
+    state = tied.state_dict()
+    with torch.no_grad():
+        raw = tied.medium_field.density_raw
+        if name == "fog":
+            raw.fill_(0.3)
+        else:
+            raw[3:] = raw[:3] = torch.tensor([0.1, -0.4, 0.7])
+        state = {key: value for key, value in tied.state_dict().items() if key != "medium_model_code"}
+    full.load_state_dict(state, strict=False)
+    tied.eval()
+    full.eval()
+    bundle = rays(32, seed=4)
+    a, b = tied(bundle), full(bundle)
+    for key in ("rgb", "clean", "direct", "backscatter", "medium_attenuation", "medium_backscatter", "depth"):
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=0, msg=key)
+
+
+def test_uniform_medium_renders_as_seathru_with_equal_densities():
+    """The formula behind ``uniform``: the renderer with sigma_attn = sigma_bs (closed form of an
+    opaque wall at range z: J e^{-beta z} + B (1 - e^{-beta z}))."""
+    beta = torch.tensor([[0.4, 0.7, 1.1]])
+    z = 2.5
+    starts = torch.tensor([[[0.0], [z]]])
+    deltas = torch.tensor([[[z], [1.0]]])
+    density = torch.tensor([[[0.0], [1e6]]])
+    colour = torch.tensor([[[0.0, 0.0, 0.0], [0.8, 0.5, 0.3]]])
+    veil = torch.tensor([[0.1, 0.3, 0.5]])
+    out = render_seathru(colour, density, starts, deltas, veil, beta, beta)
+    expected = colour[:, 1] * torch.exp(-beta * z) + veil * -torch.expm1(-beta * z)
+    torch.testing.assert_close(out.rgb, expected, rtol=1e-5, atol=1e-6)
+
+
+def evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.07, 0.2, 0.39)):
+    return MediumEvidence(backscatter_share=share, beta_D=beta_D, beta_B=beta_B, B_inf=B_inf)
+
+
+@pytest.mark.parametrize(
+    "case, expected",
+    [
+        (evidence(), "seathru"),  # the water demo's true medium
+        (evidence(share=0.005), "none"),  # no backscatter: whatever the densities say
+        (evidence(share=0.019), "none"),
+        (evidence(share=0.021, beta_D=(1.2,) * 3, beta_B=(1.2,) * 3, B_inf=(0.6,) * 3), "fog"),
+        (evidence(beta_D=(1.3, 1.25, 1.1), beta_B=(1.2, 1.3, 1.0), B_inf=(0.6, 0.58, 0.55)), "fog"),
+        (evidence(beta_D=(1.0, 2.0, 1.0), beta_B=(1.0, 2.0, 1.0), B_inf=(0.6,) * 3), "uniform"),  # grey, not fog
+        (evidence(beta_D=(1.2,) * 3, beta_B=(1.2,) * 3), "uniform"),  # equal densities, blue veil: not fog
+        (evidence(beta_D=(1.3, 0.9, 0.5), beta_B=(1.2, 1.0, 0.45)), "uniform"),
+        (evidence(beta_D=(1.3, 0.9, 0.5), beta_B=(1.3, 0.9, 0.7)), "seathru"),  # blue ratio 1.4
+        (evidence(beta_D=(1.0,) * 3, beta_B=(0.0, 1.0, 1.0), B_inf=(0.6,) * 3), "seathru"),  # a zero density
+    ],
+)
+def test_decision_rule_on_synthetic_evidence(case, expected):
+    chosen, reason = choose_medium_model(case)
+    assert chosen == expected, reason
+    assert reason
+
+
+def test_decision_rule_thresholds_are_the_rules():
+    water = evidence()
+    assert choose_medium_model(water, ChoiceRule(tie_ratio=1.5))[0] == "uniform"
+    assert choose_medium_model(water, ChoiceRule(none_below_share=0.5))[0] == "none"
+    grey = evidence(beta_D=(1.0, 1.1, 1.2), beta_B=(1.0, 1.1, 1.2), B_inf=(0.5, 0.55, 0.6))
+    assert choose_medium_model(grey)[0] == "fog"
+    assert choose_medium_model(grey, ChoiceRule(grey_veil_ratio=1.1))[0] == "uniform"
+
+
+def feed_evidence(model, values: MediumEvidence, steps: range) -> None:
+    for step in steps:
+        model.train_step = step
+        row = {"backscatter_share": torch.tensor(values.backscatter_share)}
+        for name in ("beta_D", "beta_B", "B_inf"):
+            for channel, value in zip("rgb", getattr(values, name)):
+                row[f"medium_{name}_{channel}"] = torch.tensor(value)
+        model._record_evidence(row)
+
+
+def test_auto_decides_once_at_its_step_from_the_mean_evidence_and_checkpoints_record_it():
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_evidence_steps=20)
+    assert model.medium_model == "seathru" and int(model.medium_model_code) == UNDECIDED
+    field_before = {k: v.clone() for k, v in model.field.state_dict().items()}
+    # early evidence is ignored: only the last 20 steps count
+    feed_evidence(model, evidence(), range(0, 20))
+    feed_evidence(model, evidence(share=0.0), range(20, 30))
+    feed_evidence(model, evidence(share=0.03), range(30, 40))  # mean 0.015: none
+    model._decide_medium_model(38)
+    assert int(model.medium_model_code) == UNDECIDED
+    model._decide_medium_model(39)
+    assert model.medium_model == "none"
+    for key, value in model.field.state_dict().items():
+        torch.testing.assert_close(value, field_before[key])  # switching keeps the object field
+    feed_evidence(model, evidence(), range(40, 60))
+    model._decide_medium_model(59)
+    assert model.medium_model == "none"  # decided once
+
+    state = model.state_dict()
+    assert int(state["medium_model_code"]) == MEDIUM_MODELS.index("none")
+    fresh = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    fresh.load_state_dict(state)
+    assert fresh.medium_model == "none"
+    old = {key: value for key, value in state.items() if key != "medium_model_code"}
+    legacy = tiny_model(medium_model="fog")
+    legacy.load_state_dict(old)  # a checkpoint from before the model was recorded
+    assert legacy.medium_model == "fog"
+
+
+def test_auto_settings_are_checked():
+    with pytest.raises(ValueError, match="medium_auto_decision_step"):
+        tiny_model(medium_model="auto", medium_first_steps=200, medium_auto_decision_step=100)
+    model = tiny_model(medium_model="seathru")
+    model.config.medium_model = "final"  # configs saved before the model had its name
+    model.config.check()
+    assert model.config.medium_model == "seathru"
