@@ -24,6 +24,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio import diagnostics, metrics, viewer
 from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
+from seathru_nerfstudio.lazy_outputs import LazyOutputs
 from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import (
@@ -37,6 +38,13 @@ from seathru_nerfstudio.medium_field import (
     tie,
 )
 from seathru_nerfstudio.rendering import Quadrature, SeathruRender, object_weights, render_seathru
+
+WATER_OUTPUTS = ("rgb", "direct", "backscatter")
+"""Outputs that need the object field and the medium."""
+OBJECT_OUTPUTS = ("clean", "depth", "expected_depth", "accumulation")
+"""Outputs of the object field alone (with the proposal depths ``prop_depth_<i>``)."""
+MEDIUM_OUTPUTS = ("medium_rgb", "medium_attenuation", "medium_backscatter")
+"""Per-ray medium maps: the medium alone, without the object field."""
 
 UNDECIDED = -1
 """``medium_model_code`` of an ``auto`` run before its decision (it renders ``seathru``)."""
@@ -388,7 +396,9 @@ class SeathruModel(NerfactoModel):
             param_groups["medium_density"] = density
         return param_groups
 
-    def get_outputs(self, ray_bundle: RayBundle):
+    def get_outputs(self, ray_bundle: RayBundle, with_medium: bool = True):
+        """The outputs contract of a batch of rays. ``with_medium=False``: the object outputs only
+        (:data:`OBJECT_OUTPUTS`, ``prop_depth_<i>``), without evaluating the medium."""
         if self.training:
             self.camera_optimizer.apply_to_raybundle(ray_bundle)
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
@@ -405,20 +415,16 @@ class SeathruModel(NerfactoModel):
             field_outputs[FieldHeadNames.DENSITY] = torch.zeros_like(field_outputs[FieldHeadNames.DENSITY])
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
-        blend = self.medium_blend
-        if self.medium_model == "none" and blend >= 1.0:
+        if not with_medium or self.clear_air:
             render = self._render_clear_air(field_outputs, ray_samples)
-            medium = clear_medium(ray_bundle.directions)
-            return self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry)
-        learned = self.medium_field(ray_bundle.directions)  # once per ray
-        if self.medium_model == "none":
-            medium = clear_medium(ray_bundle.directions)
-        else:
-            medium = tie(learned, self.medium_model)
-        if blend < 1.0:  # auto, just after its decision
-            medium = blend_media(learned, medium, blend)
-        if not self.training and self.medium_controls_enabled:
-            medium = self.viewer_controls.medium(medium)  # the viewer's water density and colour
+            outputs = self._collect_outputs(
+                ray_bundle, ray_samples, weights_list, ray_samples_list, render, clear_medium(ray_bundle.directions), geometry
+            )
+            if not with_medium:
+                for name in WATER_OUTPUTS + MEDIUM_OUTPUTS:
+                    outputs.pop(name)
+            return outputs
+        medium = self.medium(ray_bundle.directions)  # once per ray
         densities_for_envelope = None
         if self.object_frozen:
             if self.config.medium_envelope_quantile > 0:
@@ -442,6 +448,26 @@ class SeathruModel(NerfactoModel):
         return self._collect_outputs(
             ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, densities_for_envelope
         )
+
+    @property
+    def clear_air(self) -> bool:
+        """True when the model in use is ``none`` (and any blend to it is over): no medium at all."""
+        return self.medium_model == "none" and self.medium_blend >= 1.0
+
+    def medium(self, directions: torch.Tensor) -> MediumOutputs:
+        """The medium of rays with these unit directions as rendered now: the model in use (tied,
+        or zero for ``none``), blended from ``seathru`` just after ``auto`` decided, and outside
+        training changed by the viewer's water controls. Clear air evaluates no network."""
+        if self.clear_air:
+            return clear_medium(directions)
+        learned = self.medium_field(directions)
+        medium = clear_medium(directions) if self.medium_model == "none" else tie(learned, self.medium_model)
+        blend = self.medium_blend
+        if blend < 1.0:  # auto, just after its decision
+            medium = blend_media(learned, medium, blend)
+        if not self.training and self.medium_controls_enabled:
+            medium = self.viewer_controls.medium(medium)  # the viewer's water density and colour
+        return medium
 
     def _render_clear_air(self, field_outputs, ray_samples) -> SeathruRender:
         """The ``none`` model: nerfacto's rendering (nerfstudio's weights and ``RGBRenderer``),
@@ -504,12 +530,58 @@ class SeathruModel(NerfactoModel):
 
     @torch.no_grad()
     def get_outputs_for_camera_ray_bundle(self, camera_ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
-        """nerfstudio's whole-image render, plus (outside training) the display outputs of
-        :mod:`seathru_nerfstudio.viewer` first: nerfstudio's viewer opens on the first output."""
-        outputs = super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)
+        """A whole image. While training, nerfstudio's render of every output. Outside training,
+        :class:`~seathru_nerfstudio.lazy_outputs.LazyOutputs`: the display outputs of
+        :mod:`seathru_nerfstudio.viewer` first (nerfstudio's viewer opens on the first output),
+        then the linear ones, each computed when it is first read: a view of ``clean`` or of
+        ``depth`` never evaluates the medium, a medium map never evaluates the object field, and
+        ``rgb`` brings the object outputs along (one pass over the field) but not the medium maps."""
         if self.training:
-            return outputs
-        return {**self.viewer_controls.display_outputs(outputs), **outputs}
+            return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)
+        prop_depths = tuple(f"prop_depth_{i}" for i in range(self.config.num_proposal_iterations))
+        names = viewer.DISPLAY_OUTPUTS + WATER_OUTPUTS + OBJECT_OUTPUTS + MEDIUM_OUTPUTS + prop_depths
+
+        def compute(name: str, outputs) -> Dict[str, torch.Tensor]:
+            if name in viewer.DISPLAY_OUTPUTS:
+                return {name: self.viewer_controls.display_output(name, outputs)}
+            if name in MEDIUM_OUTPUTS:
+                return self._render_medium_maps(camera_ray_bundle)
+            return self._render_image(camera_ray_bundle, with_medium=name in WATER_OUTPUTS)
+
+        return LazyOutputs(names, compute)
+
+    def _render_image(self, camera_ray_bundle: RayBundle, with_medium: bool) -> Dict[str, torch.Tensor]:
+        """nerfstudio's chunked whole-image render (``eval_num_rays_per_chunk`` rays at a time),
+        of the water and object outputs, or (``with_medium=False``) of the object outputs only."""
+        keep = (WATER_OUTPUTS if with_medium else ()) + OBJECT_OUTPUTS
+        keep += tuple(f"prop_depth_{i}" for i in range(self.config.num_proposal_iterations))
+        chunks: Dict[str, List[torch.Tensor]] = {name: [] for name in keep}
+        for bundle in self._chunks(camera_ray_bundle):
+            bundle = self.collider(bundle) if self.collider is not None else bundle
+            outputs = self.get_outputs(bundle, with_medium=with_medium)
+            for name in keep:
+                chunks[name].append(outputs[name].to(camera_ray_bundle.origins.device))
+        return self._images(camera_ray_bundle, chunks)
+
+    def _render_medium_maps(self, camera_ray_bundle: RayBundle) -> Dict[str, torch.Tensor]:
+        """The per-ray medium maps, from the ray directions alone (no object field)."""
+        chunks: Dict[str, List[torch.Tensor]] = {name: [] for name in MEDIUM_OUTPUTS}
+        for bundle in self._chunks(camera_ray_bundle):
+            medium = self.medium(bundle.directions.to(self.device))
+            for name, value in zip(MEDIUM_OUTPUTS, (medium.rgb, medium.sigma_attn, medium.sigma_bs)):
+                chunks[name].append(value.to(camera_ray_bundle.origins.device))
+        return self._images(camera_ray_bundle, chunks)
+
+    def _chunks(self, camera_ray_bundle: RayBundle):
+        """An image's rays in row-major chunks of ``eval_num_rays_per_chunk``, on the model's device."""
+        step = self.config.eval_num_rays_per_chunk
+        for start in range(0, len(camera_ray_bundle), step):
+            yield camera_ray_bundle.get_row_major_sliced_ray_bundle(start, start + step).to(self.device)
+
+    @staticmethod
+    def _images(camera_ray_bundle: RayBundle, chunks: Dict[str, List[torch.Tensor]]) -> Dict[str, torch.Tensor]:
+        height, width = camera_ray_bundle.origins.shape[:2]
+        return {name: torch.cat(values).view(height, width, -1) for name, values in chunks.items()}
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         metrics_dict = super().get_metrics_dict(outputs, batch)

@@ -34,7 +34,7 @@ while the model trains.
 
 from __future__ import annotations
 
-from typing import Dict, Optional, Tuple
+from typing import Dict, Mapping, Optional, Tuple
 
 import torch
 from torch import Tensor, nn
@@ -86,21 +86,37 @@ def water_split(rgb: Tensor, clean: Tensor) -> Tensor:
     return split
 
 
+def display_sources(name: str, water: bool) -> Tuple[str, ...]:
+    """The linear outputs that the display output ``name`` is made from."""
+    if name == SPLIT_OUTPUT:
+        return ("rgb", "clean")
+    if name == "rgb" + DISPLAY_SUFFIX and not water:
+        return ("clean",)
+    if name in DISPLAY_OUTPUTS:
+        return (name[: -len(DISPLAY_SUFFIX)],)
+    raise KeyError(f"{name!r} is not a display output; they are {', '.join(DISPLAY_OUTPUTS)}")
+
+
+def display_output(name: str, outputs: Mapping[str, Tensor], water: bool, exposure: float, srgb: bool) -> Tensor:
+    """One display output (:data:`DISPLAY_OUTPUTS`) of a whole image's linear outputs
+    (``[H, W, C]`` each); reads only its :func:`display_sources`, so that a lazily rendered
+    image computes nothing else."""
+    sources = [outputs[source] for source in display_sources(name, water)]
+    if name == SPLIT_OUTPUT:
+        return water_split(*(tone(source, exposure, srgb) for source in sources))
+    if name[: -len(DISPLAY_SUFFIX)] in DENSITY_OUTPUTS:
+        return (sources[0] / sources[0].max().clamp_min(1e-12)).clamp(0.0, 1.0)
+    return tone(sources[0], exposure, srgb)
+
+
 def display_outputs(outputs: Dict[str, Tensor], water: bool, exposure: float, srgb: bool) -> Dict[str, Tensor]:
-    """The display versions (:data:`DISPLAY_OUTPUTS`) of a whole image's linear outputs
-    (``[H, W, C]`` each); outputs that are missing are skipped."""
-    shown: Dict[str, Tensor] = {}
-    for name in COLOUR_OUTPUTS:
-        if name in outputs:
-            source = outputs["clean"] if name == "rgb" and not water and "clean" in outputs else outputs[name]
-            shown[name + DISPLAY_SUFFIX] = tone(source, exposure, srgb)
-    for name in DENSITY_OUTPUTS:
-        if name in outputs:
-            density = outputs[name]
-            shown[name + DISPLAY_SUFFIX] = (density / density.max().clamp_min(1e-12)).clamp(0.0, 1.0)
-    if "rgb" in outputs and "clean" in outputs:
-        shown[SPLIT_OUTPUT] = water_split(tone(outputs["rgb"], exposure, srgb), tone(outputs["clean"], exposure, srgb))
-    return shown
+    """Every display output (:data:`DISPLAY_OUTPUTS`) of a whole image's linear outputs
+    (``[H, W, C]`` each); those whose sources are missing are skipped."""
+    return {
+        name: display_output(name, outputs, water, exposure, srgb)
+        for name in DISPLAY_OUTPUTS
+        if all(source in outputs for source in display_sources(name, water))
+    }
 
 
 def override_medium(
@@ -177,9 +193,18 @@ class SeathruViewerControls(nn.Module):
 
     def display_outputs(self, outputs: Dict[str, Tensor]) -> Dict[str, Tensor]:
         """:func:`display_outputs` with the Water, exposure and sRGB controls' current values."""
-        return display_outputs(
-            outputs, water=bool(self.c1_water.value), exposure=float(self.c5_exposure.value), srgb=bool(self.c6_srgb.value)
-        )
+        return display_outputs(outputs, **self._display_settings())
+
+    def display_sources(self, name: str) -> Tuple[str, ...]:
+        """:func:`display_sources` with the Water control's current value."""
+        return display_sources(name, water=bool(self.c1_water.value))
+
+    def display_output(self, name: str, outputs: Mapping[str, Tensor]) -> Tensor:
+        """:func:`display_output` with the Water, exposure and sRGB controls' current values."""
+        return display_output(name, outputs, **self._display_settings())
+
+    def _display_settings(self) -> dict:
+        return dict(water=bool(self.c1_water.value), exposure=float(self.c5_exposure.value), srgb=bool(self.c6_srgb.value))
 
     def forward(self, *args, **kwargs) -> None:  # pragma: no cover - holder only
         raise TypeError("SeathruViewerControls only holds viewer elements; it is not callable")
