@@ -524,8 +524,9 @@ class SeathruModel(NerfactoModel):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
             if densities_for_envelope is not None:
                 outputs["medium_densities_for_envelope"] = densities_for_envelope
-        for i in range(self.config.num_proposal_iterations):
-            outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
+        if not self.training:  # no loss reads them
+            for i in range(self.config.num_proposal_iterations):
+                outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
         return outputs
 
     @torch.no_grad()
@@ -541,6 +542,7 @@ class SeathruModel(NerfactoModel):
         prop_depths = tuple(f"prop_depth_{i}" for i in range(self.config.num_proposal_iterations))
         names = viewer.DISPLAY_OUTPUTS + WATER_OUTPUTS + OBJECT_OUTPUTS + MEDIUM_OUTPUTS + prop_depths
 
+        @torch.no_grad()  # read later, outside this method's no_grad (ns-render reads with grad on)
         def compute(name: str, outputs) -> Dict[str, torch.Tensor]:
             if name in viewer.DISPLAY_OUTPUTS:
                 return {name: self.viewer_controls.display_output(name, outputs)}

@@ -92,7 +92,9 @@ def test_an_output_that_was_not_read_is_not_computed(model):
 
 def test_lazy_outputs_equal_the_full_render(model):
     full = model.get_outputs_for_camera(small_camera())
-    everything = {name: full[name] for name in full}  # reads every output
+    with torch.enable_grad():  # read as ns-render reads them: outside no_grad
+        everything = {name: full[name] for name in full}  # reads every output
+    assert not any(value.requires_grad for value in everything.values())
     with torch.no_grad():
         flat = model(small_camera().generate_rays(camera_indices=0).flatten())
     for name in ("rgb", "clean", "depth", "accumulation", "medium_attenuation", "backscatter"):

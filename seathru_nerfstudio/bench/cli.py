@@ -1,5 +1,6 @@
 """``seathru-bench``: ``run`` (methods x scenes), ``numerics`` (renderer quadratures),
-``report`` (table and plots again from a results.json)."""
+``report`` (table and plots again from a results.json), ``render-cost`` (a camera render's
+cost by the outputs read)."""
 
 from __future__ import annotations
 
@@ -31,6 +32,7 @@ class ReportConfig:
 
 def entrypoint() -> None:
     from seathru_nerfstudio.bench.numerics import NumericsConfig
+    from seathru_nerfstudio.bench.render_cost import RenderCostConfig
 
     silence_upstream_warnings()
     command = tyro.cli(
@@ -38,6 +40,7 @@ def entrypoint() -> None:
             Annotated[RunConfig, tyro.conf.subcommand("run", default=RunConfig())],
             Annotated[NumericsConfig, tyro.conf.subcommand("numerics", default=NumericsConfig())],
             Annotated[ReportConfig, tyro.conf.subcommand("report", default=ReportConfig())],
+            Annotated[RenderCostConfig, tyro.conf.subcommand("render-cost", default=RenderCostConfig())],
         ]
     )
     if isinstance(command, RunConfig):
@@ -49,6 +52,10 @@ def entrypoint() -> None:
         except MethodSpecError as error:
             CONSOLE.print(f"[bold red]Error: seathru-bench: {error}")
             sys.exit(1)
+    elif isinstance(command, RenderCostConfig):
+        from seathru_nerfstudio.bench.render_cost import run_render_cost
+
+        run_render_cost(command)
     elif isinstance(command, NumericsConfig):
         from seathru_nerfstudio.bench.numerics import run_numerics
 
