@@ -142,6 +142,9 @@ def test_model_outputs_stay_finite_under_autocast(model, dtype):
         out = model(rays(32, seed=3))
         loss = rawnerf_loss(out["rgb"], torch.rand(32, 3))
     for name in CONTRACT:
+        if name.startswith("prop_depth"):  # training computes only what the losses read
+            assert name not in out, name
+            continue
         assert torch.isfinite(out[name].float()).all(), name
     loss.backward()
     assert all(torch.isfinite(p.grad).all() for p in model.parameters() if p.grad is not None)
