@@ -215,3 +215,26 @@ def test_auto_settings_are_checked():
     model.config.medium_model = "final"  # configs saved before the model had its name
     model.config.check()
     assert model.config.medium_model == "seathru"
+
+
+def test_after_the_decision_the_medium_blends_to_the_choice_and_the_geometry_holds():
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100)
+    feed_evidence(model, evidence(share=0.0), range(20, 40))
+    model._decide_medium_model(39)
+    assert model.medium_model == "none" and int(model.medium_model_step) == 40
+    model.train()
+    bundle = rays(24, seed=5)
+    learned = model.medium_field(bundle.directions)
+    for step, weight in ((40, 0.0), (90, 0.5), (139, 0.99)):
+        model.train_step = step
+        assert model.medium_blend == pytest.approx(weight)
+        out = model(bundle)
+        torch.testing.assert_close(out["medium_attenuation"], (1 - weight) * learned.sigma_attn.detach(), msg=str(step))
+        torch.testing.assert_close(out["medium_rgb"], (1 - weight) * learned.rgb.detach(), msg=str(step))
+        # the object density gets no gradient while the medium moves; the colour does
+        assert not out["accumulation"].requires_grad and not out["expected_depth"].requires_grad
+        assert out["clean"].requires_grad
+    model.train_step = 140
+    calls = count_medium_calls(model)
+    out = model(bundle)
+    assert calls == [] and model.clear_air and bool((out["backscatter"] == 0).all())
