@@ -332,7 +332,8 @@ class SeathruModel(NerfactoModel):
             return  # resumed right before the decision: gather the evidence first
         chosen, reason = choose_medium_model(evidence, self.config.medium_auto_rule)
         self.medium_model_code.fill_(MEDIUM_MODELS.index(chosen))
-        self.medium_model_step.fill_(step + 1)
+        if chosen != "seathru":  # the warm-up's own model: nothing to blend
+            self.medium_model_step.fill_(step + 1)
         self.auto_evidence.clear()
         CONSOLE.print(f"[bold]seathru step {step}: medium model auto -> {chosen}[/] ({reason})")
 

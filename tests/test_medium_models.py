@@ -208,6 +208,14 @@ def test_auto_decides_once_at_its_step_from_the_mean_evidence_and_checkpoints_re
     assert legacy.medium_model == "fog"
 
 
+def test_auto_keeping_seathru_changes_nothing():
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    feed_evidence(model, evidence(), range(20, 40))
+    model._decide_medium_model(39)
+    model.train_step = 41
+    assert model.medium_model == "seathru" and model.medium_blend == 1.0
+
+
 def test_auto_settings_are_checked():
     with pytest.raises(ValueError, match="medium_auto_decision_step"):
         tiny_model(medium_model="auto", medium_first_steps=200, medium_auto_decision_step=100)
