@@ -179,6 +179,9 @@ def test_method_spec_overrides_are_parsed_as_ns_train_parses_them():
     config = build_config("seathru-nerf-lite:pipeline.datamanager.dataparser.eval_mode=interval,medium_model=basic")
     assert config.pipeline.datamanager.dataparser.eval_mode == "interval"
     assert type(config.pipeline.datamanager.dataparser) is type(build_config("seathru-nerf-lite").pipeline.datamanager.dataparser)
+    # lower-case none is the clear-air medium model; None is None
+    assert build_config("seathru-nerf-lite:medium_model=none").pipeline.model.medium_model == "none"
+    assert build_config("seathru-nerf-lite:medium_oracle=None").pipeline.model.medium_oracle is None
 
 
 @pytest.mark.parametrize(

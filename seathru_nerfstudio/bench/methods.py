@@ -10,8 +10,9 @@ Overrides are ``ns-train`` flags in short: tyro parses them against the method's
 dotted path from the ``TrainerConfig`` (``pipeline.datamanager.train_num_rays_per_batch=2048``,
 dictionary keys included: ``optimizers.medium.optimizer.lr=0.05``); keys under
 ``pipeline.datamanager.dataparser.`` are the dataparser's own flags (those after ns-train's
-dataparser subcommand). Values are read as ns-train reads them; ``true``/``false``/``none`` in
-any case are ``True``/``False``/``None``, and a tuple is written ``a|b|c``. ``ns-train NAME
+dataparser subcommand). Values are read as ns-train reads them; ``true``/``false`` in any case
+are ``True``/``False``, ``None`` is ``None`` (lower-case ``none`` stays a string: it is a medium
+model, ``medium_model=none``), and a tuple is written ``a|b|c``. ``ns-train NAME
 --help`` lists every flag.
 """
 
@@ -103,7 +104,7 @@ def parse_spec(spec: str) -> Tuple[str, Dict[str, str]]:
 
 
 def _flag_values(text: str) -> List[str]:
-    return [item.capitalize() if item.lower() in ("true", "false", "none") else item for item in text.split("|")]
+    return [item.capitalize() if item.lower() in ("true", "false") else item for item in text.split("|")]
 
 
 def override_flags(overrides: Dict[str, str]) -> Tuple[List[str], List[str]]:
