@@ -100,9 +100,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     """``auto``: thresholds of the decision."""
     medium_auto_blend_steps: int = 200
     """``auto``: after the decision the medium moves linearly from the learned ``seathru`` medium
-    to the chosen model over this many steps, so that the object colour can follow (measured on
-    a tiny clear scene: an abrupt switch to ``none`` brightened every pixel at once, and the
-    object opacity fell from 0.75 to 0.20 within 20 steps)."""
+    to the chosen model over this many steps, and the object density is held (no gradient) in
+    the meantime, so that the object colour follows instead of the geometry (measured on the clear
+    scene, docs/benchmarks.md: switching abruptly or blending alone emptied the geometry)."""
     far_bound_margin: float = 2.0
     """If > 0 and the dataparser gives the scene's far bound (SfM depths, poses_bounds.npy),
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
