@@ -477,13 +477,13 @@ class SeathruModel(NerfactoModel):
         return medium
 
     def _render_clear_air(self, field_outputs, ray_samples) -> SeathruRender:
-        """The ``none`` model: nerfacto's rendering (nerfstudio's weights and ``RGBRenderer``),
-        with the contract's medium outputs at their exact values: ``rgb = direct = clean``, zero
-        backscatter."""
-        weights = ray_samples.get_weights(field_outputs[FieldHeadNames.DENSITY])
+        """The ``none`` model: nerfacto's rendering (its weights ``T_i (1 - e^{-sigma_i delta_i})``,
+        from :func:`object_weights` in one pass with the transmittance the binary prior reads, and
+        nerfstudio's ``RGBRenderer``), with the contract's medium outputs at their exact values:
+        ``rgb = direct = clean``, zero backscatter."""
+        weights, transmittance, _ = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)
         rgb = self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights)
         accumulation = self.renderer_accumulation(weights=weights)
-        transmittance = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)[1]
         return SeathruRender(
             rgb=rgb,
             direct=rgb,

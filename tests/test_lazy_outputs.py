@@ -9,7 +9,7 @@ from seathru_nerfstudio.lazy_outputs import LazyOutputs
 from seathru_nerfstudio.viewer import DISPLAY_OUTPUTS
 
 from test_model import small_camera
-from tiny_training import tiny_model
+from tiny_training import spy_calls, tiny_model
 
 
 def test_lazy_outputs_compute_on_first_read_only_and_keep_what_was_set():
@@ -37,24 +37,13 @@ class Counter:
     """Counts the calls of the object field and of the medium of a model (test spies)."""
 
     def __init__(self, model):
-        self.field = 0
-        self.medium = 0
-        field_forward, medium_forward = model.field.forward, model.medium_field.forward
-
-        def field_spy(*args, **kwargs):
-            self.field += 1
-            return field_forward(*args, **kwargs)
-
-        def medium_spy(*args, **kwargs):
-            self.medium += 1
-            return medium_forward(*args, **kwargs)
-
-        model.field.forward = field_spy
-        model.medium_field.forward = medium_spy
+        self.field_calls = spy_calls(model.field)
+        self.medium_calls = spy_calls(model.medium_field)
 
     def take(self):
-        counts = (self.field, self.medium)
-        self.field = self.medium = 0
+        counts = (len(self.field_calls), len(self.medium_calls))
+        self.field_calls.clear()
+        self.medium_calls.clear()
         return counts
 
 

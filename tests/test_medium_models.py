@@ -17,20 +17,12 @@ from seathru_nerfstudio.model import UNDECIDED
 from seathru_nerfstudio.rendering import render_seathru
 
 from test_model import rays
-from tiny_training import tiny_model
+from tiny_training import spy_calls, tiny_model
 
 
 def count_medium_calls(model) -> list:
-    """Replace the model's medium's forward by a counting spy; returns the list of calls."""
-    calls = []
-    original = model.medium_field.forward
-
-    def spy(directions):
-        calls.append(directions.shape)
-        return original(directions)
-
-    model.medium_field.forward = spy
-    return calls
+    """The calls of the model's medium, from now on."""
+    return spy_calls(model.medium_field)
 
 
 def test_none_renders_what_nerfacto_renders_from_the_same_field_and_never_calls_the_medium():

@@ -17,7 +17,7 @@ from seathru_nerfstudio import metrics
 from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.model import SeathruModel, SeathruModelConfig
 
-from tiny_training import tiny_model
+from tiny_training import spy_calls, tiny_model
 
 CONTRACT = (
     "rgb",
@@ -68,14 +68,7 @@ def test_outputs_follow_the_contract_and_are_finite(model):
 
 def test_medium_is_evaluated_once_per_ray(model):
     model.train()
-    calls = []
-    original = model.medium_field.forward
-
-    def spy(directions):
-        calls.append(directions.shape)
-        return original(directions)
-
-    model.medium_field.forward = spy
+    calls = spy_calls(model.medium_field)
     try:
         model(rays(32))
     finally:

@@ -102,3 +102,17 @@ def tiny_model(**overrides):
         **overrides,
     )
     return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)
+
+
+def spy_calls(module) -> list:
+    """Replace ``module.forward`` on this instance by a spy; returns the list of the shapes of
+    each call's first argument (``del module.forward`` restores the class's forward)."""
+    calls: list = []
+    original = module.forward
+
+    def spy(first, *args, **kwargs):
+        calls.append(getattr(first, "shape", None))
+        return original(first, *args, **kwargs)
+
+    module.forward = spy
+    return calls
