@@ -150,7 +150,12 @@ class SeathruModelConfig(NerfactoModelConfig):
     # appearance code (it could explain the water away), no pose refinement.
     distortion_loss_mult: float = 0.0
     use_appearance_embedding: bool = False
-    background_color: Literal["random", "last_sample", "black", "white"] = "black"
+    background_color: Literal["random", "last_sample", "black", "white"] = "last_sample"
+    """What a ray shows behind the object field when there is no medium: only the ``none`` model
+    reads it, and, as nerfacto, takes the colour of the last sample (a distant backdrop). With a
+    medium the water is behind everything, and ``clean`` shows black there. (Measured on the
+    ``none`` demo, 750 iterations: black 21.8 dB, depth abs-rel 1.32, object opacity 0.41;
+    ``last_sample`` 24.7 dB, 0.11, 0.97: black lets dark surfaces stay half transparent.)"""
     camera_optimizer: CameraOptimizerConfig = field(default_factory=lambda: CameraOptimizerConfig(mode="off"))
 
     def __post_init__(self) -> None:
@@ -480,9 +485,13 @@ class SeathruModel(NerfactoModel):
         """The ``none`` model: nerfacto's rendering (its weights ``T_i (1 - e^{-sigma_i delta_i})``,
         from :func:`object_weights` in one pass with the transmittance the binary prior reads, and
         nerfstudio's ``RGBRenderer``), with the contract's medium outputs at their exact values:
-        ``rgb = direct = clean``, zero backscatter."""
+        ``rgb = direct = clean``, zero backscatter. Also the object-only pass of a medium model
+        (``get_outputs(with_medium=False)``), whose ``clean`` has a black background."""
         weights, transmittance, _ = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)
-        rgb = self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights)
+        # Behind the object field: nerfacto's background in clear air; black for the clean image of
+        # a medium model (rendered here without its medium), as render_seathru's clean.
+        background = None if self.clear_air else "black"
+        rgb = self.renderer_rgb(rgb=field_outputs[FieldHeadNames.RGB], weights=weights, background_color=background)
         accumulation = self.renderer_accumulation(weights=weights)
         return SeathruRender(
             rgb=rgb,

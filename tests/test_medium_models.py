@@ -31,7 +31,7 @@ def test_none_renders_what_nerfacto_renders_from_the_same_field_and_never_calls_
     kwargs = {
         f.name: getattr(ours.config, f.name)
         for f in dataclasses.fields(NerfactoModelConfig)
-        if f.init and f.name != "_target"
+        if f.init and f.name not in ("_target", "background_color")  # nerfacto's own background
     }
     with metrics.offline_lpips():
         nerfacto = NerfactoModelConfig(**kwargs).setup(

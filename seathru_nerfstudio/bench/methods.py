@@ -34,7 +34,8 @@ from nerfstudio.pipelines.base_pipeline import VanillaPipelineConfig
 MATCHED_NERFACTO_KEEPS_OWN = ("background_color",)
 """nerfacto fields *not* copied from seathru-nerf-lite: nerfacto keeps its default
 ``last_sample`` background, which lets it paint open water with the colour of its farthest
-sample (black, seathru's choice, would force it to build a wall of water colour)."""
+sample (black would force it to build a wall of water colour). SeaThru reads its own
+``background_color`` only in its ``none`` model; with a medium the water is the background."""
 
 
 def matched_nerfacto_config() -> TrainerConfig:
