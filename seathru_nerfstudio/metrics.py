@@ -17,6 +17,8 @@ from torch import Tensor
 from torchmetrics.functional import structural_similarity_index_measure
 from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
+from seathru_nerfstudio.viewer import linear_to_srgb
+
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint that torchmetrics' LPIPS loads (from the torch hub cache)."""
 
@@ -109,10 +111,15 @@ def view_metrics(
     gt_clean: Optional[Float[Tensor, "H W 3"]] = None,
     gt_depth: Optional[Float[Tensor, "H W 1"]] = None,
     lpips: Optional[Callable] = None,
+    linear_data: bool = True,
 ) -> Dict[str, float]:
-    """Every metric of one rendered view (``outputs``: a camera render's linear ``[H, W, C]`` maps).
+    """Every metric of one rendered view (``outputs``: a camera render's ``[H, W, C]`` maps, in the
+    data's colour space).
 
     * ``psnr``, ``ssim`` (and ``lpips`` when given) of ``rgb`` against the image in the medium;
+    * with ``linear_data``: ``psnr_srgb``, the same PSNR after both are sRGB-encoded, i.e. on the
+      image a viewer shows. Linear PSNR is dominated by the bright pixels; this one weighs the dark
+      ones as the eye does, so a loss that favours one kind of pixel cannot win on one metric unseen;
     * with ``gt_depth`` (range, same units as ``depth``; ``inf`` for open water): ``depth_abs_rel``,
       its far third ``depth_abs_rel_far``, the median ``depth_abs_rel_median`` (robust to the few
       empty rays whose depth is the far plane), and the mean object opacity on object rays
@@ -126,6 +133,8 @@ def view_metrics(
     rgb = outputs["rgb"].float().clamp(0.0, 1.0)
     gt_rgb = gt_rgb[..., :3].float()
     result: Dict[str, float] = {"psnr": psnr(rgb, gt_rgb), "ssim": ssim(rgb, gt_rgb)}
+    if linear_data:
+        result["psnr_srgb"] = psnr(linear_to_srgb(rgb), linear_to_srgb(gt_rgb))
     if lpips is not None:
         result["lpips"] = float(lpips(nchw(gt_rgb), nchw(rgb)))
 

@@ -700,7 +700,9 @@ class SeathruModel(NerfactoModel):
         gt_rgb = self.renderer_rgb.blend_background(batch["image"].to(self.device))
         predicted_rgb = outputs["rgb"].clamp(0.0, 1.0)
         truth = {key: batch[key].to(self.device) for key in ("gt_clean", "gt_depth") if key in batch}
-        metrics_dict = metrics.view_metrics(outputs, gt_rgb, lpips=self.lpips, **truth)
+        metrics_dict = metrics.view_metrics(
+            outputs, gt_rgb, lpips=self.lpips, linear_data=self.config.color_space == "linear", **truth
+        )
 
         depth = colormaps.apply_depth_colormap(outputs["depth"], accumulation=outputs["accumulation"])
         images_dict = {

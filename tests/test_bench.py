@@ -93,6 +93,11 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
     outputs = {"rgb": gt + 0.1, "depth": depth.clamp_max(5) * 1.5}
     m = scoring.view_metrics(outputs, batch)
     assert m["psnr"] == pytest.approx(20.0, abs=1e-3)
+
+    def srgb(v):  # IEC 61966-2-1, above the linear toe
+        return 1.055 * v ** (1 / 2.4) - 0.055
+
+    assert m["psnr_srgb"] == pytest.approx(-20 * math.log10(srgb(0.4) - srgb(0.3)), abs=1e-3)
     assert m["clean_psnr"] == pytest.approx(-10 * math.log10(0.2**2), abs=1e-3)  # rgb 0.4 vs 0.6
     assert m["depth_abs_rel"] == pytest.approx(0.5, abs=1e-6)
     assert m["depth_abs_rel_far"] == pytest.approx(0.5, abs=1e-6)
@@ -121,7 +126,9 @@ def test_model_and_bench_score_a_view_with_the_same_code():
     batch["gt_depth"] = gt_depth
     model_scores, _ = tiny_model().get_image_metrics_and_images(outputs, batch)
     assert model_scores == scoring.view_metrics(outputs, batch)
-    assert {"psnr", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel", "depth_abs_rel_median"} <= set(model_scores)
+    assert {"psnr", "psnr_srgb", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel", "depth_abs_rel_median"} <= set(
+        model_scores
+    )
 
 
 def test_mean_metrics_skips_nan_and_log_spaced_ends_at_budget():
