@@ -138,6 +138,11 @@ class SeathruModelConfig(NerfactoModelConfig):
     """``linear`` data trains with RawNeRF's relative L2 (the paper's); ``srgb`` data with plain L2.
     The relative loss lets the dim channels count: plain L2 on the linear water demo lost the medium
     (red beta_B 5.9 /m against 0.95, clean 12.9 dB against 19-21; docs/benchmarks.md, session 6)."""
+    clear_air_objective: Literal["nerfacto", "seathru"] = "nerfacto"
+    """What the ``none`` model trains with (also ``auto`` once it has chosen ``none``). ``nerfacto``:
+    nerfacto's plain L2 and no binary prior. The relative loss is there so that the dim channels
+    pin down the medium, and the prior so that the object is told apart from the medium; clear air
+    has no medium. ``seathru``: the media models' losses."""
     rawnerf_eps: float = 1e-3
     """epsilon of the RawNeRF loss."""
     binary_prior_mult: float = 1e-3
@@ -618,10 +623,11 @@ class SeathruModel(NerfactoModel):
     def get_loss_dict(self, outputs, batch, metrics_dict=None):
         # nerfacto's terms (interlevel, distortion, camera), then the paper's colour loss.
         loss_dict = super().get_loss_dict(outputs, batch, metrics_dict)
-        if self.config.color_space == "linear":
+        nerfacto_objective = self.clear_air and self.config.clear_air_objective == "nerfacto"
+        if self.config.color_space == "linear" and not nerfacto_objective:
             image = batch["image"][..., :3].to(self.device)
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=self.config.rawnerf_eps)
-        if self.training and self.config.binary_prior_mult > 0:
+        if self.training and self.config.binary_prior_mult > 0 and not nerfacto_objective:
             loss_dict["binary_prior_loss"] = self.config.binary_prior_mult * binary_transmittance_loss(
                 outputs["transmittance"],
                 scale=self.config.binary_prior_scale,

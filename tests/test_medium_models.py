@@ -14,6 +14,7 @@ from seathru_nerfstudio import metrics
 from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumOutputs, tie
 from seathru_nerfstudio.model import UNDECIDED
+from seathru_nerfstudio.losses import rawnerf_loss
 from seathru_nerfstudio.rendering import render_seathru
 
 from test_model import rays
@@ -70,6 +71,45 @@ def test_none_trains_from_step_0_with_no_medium_stage():
     sum(losses.values()).backward()
     assert all(p.grad is None for p in model.medium_field.parameters())
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
+
+
+def losses_of(model, seed: int = 0) -> dict:
+    model.train()
+    out = model(rays(16, seed=seed))
+    target = torch.rand(16, 3, generator=torch.Generator().manual_seed(seed))
+    batch = {"image": target}
+    return model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch)), out, target
+
+
+@pytest.mark.parametrize("objective", ["nerfacto", "seathru"])
+def test_clear_air_trains_with_the_objective_it_is_given(objective):
+    """``none`` on linear data: nerfacto's L2 and no prior, or on request the media models' losses;
+    a medium model keeps the relative loss and the prior whatever the setting."""
+    none = tiny_model(medium_model="none", clear_air_objective=objective)
+    losses, out, target = losses_of(none)
+    relative = rawnerf_loss(out["rgb"], target)
+    if objective == "nerfacto":
+        torch.testing.assert_close(losses["rgb_loss"], torch.mean((out["rgb"] - target) ** 2))
+        assert "binary_prior_loss" not in losses
+    else:
+        torch.testing.assert_close(losses["rgb_loss"], relative)
+        assert "binary_prior_loss" in losses
+    seathru = tiny_model(medium_model="seathru", clear_air_objective=objective)
+    losses, out, target = losses_of(seathru)
+    torch.testing.assert_close(losses["rgb_loss"], rawnerf_loss(out["rgb"], target))
+    assert "binary_prior_loss" in losses
+
+
+def test_auto_takes_the_clear_air_objective_once_the_blend_to_none_is_over():
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100)
+    feed_evidence(model, evidence(share=0.0), range(20, 40))
+    model._decide_medium_model(39)
+    for step, has_prior in ((90, True), (140, False)):
+        model.train_step = step
+        losses, out, target = losses_of(model, seed=step)
+        assert ("binary_prior_loss" in losses) == has_prior, step
+        expected = rawnerf_loss(out["rgb"], target) if has_prior else torch.mean((out["rgb"] - target) ** 2)
+        torch.testing.assert_close(losses["rgb_loss"], expected, msg=str(step))
 
 
 def test_tie_averages_the_densities_as_each_model_asks():
