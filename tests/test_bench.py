@@ -299,6 +299,7 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
         "--scenes", "water", "--methods", "seathru-nerf-lite", "nerfacto",
         "--output-dir", str(out), "--budget-iterations", "3", "--num-evals", "2",
         "--first-eval-fraction", "0.34", "--jobs", "2", "--width", "32", "--height", "24", "--num-views", "6",
+        "--save-model",
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -315,6 +316,10 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
         for key in ("psnr", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel", "depth_abs_rel_far"):
             assert math.isfinite(final[key]), key
         assert len(run["evals"][-1]["per_view"]) == 2  # views 0 and 5 of 6 are held out
+    for label in ("seathru-nerf-lite", "nerfacto"):  # --save-model: what ns-eval and ns-render load
+        (config_file,) = (out / "runs" / "water" / label).glob("run/*/*/config.yml")
+        saved = sorted(p.name for p in config_file.parent.glob("nerfstudio_models/*.ckpt"))
+        assert saved == ["step-000000001.ckpt", "step-000000003.ckpt"]  # one per evaluation
     seathru, nerfacto = results["runs"]
     err = seathru["evals"][-1]["medium_error"]
     assert set(err) == {"beta_D", "beta_B", "B_inf"}

@@ -65,6 +65,10 @@ class RunConfig:
     """Views of generated preset scenes (every 5th is held out)."""
     scene_seed: int = 0
     """Seed of generated preset scenes."""
+    save_model: bool = False
+    """Also save each run's ``config.yml`` and a checkpoint at every evaluation (under
+    ``runs/<scene>/<method>/run/``), so that ``ns-eval``, ``ns-render`` or the viewer can inspect
+    any point of a benchmarked curve afterwards."""
 
 
 def resolve_scene(scene: str, config: RunConfig) -> Tuple[str, Path]:
@@ -170,6 +174,7 @@ def run_benchmark(config: RunConfig) -> Dict[str, Any]:
                     "eval_at": eval_at,
                     "seed": config.seed,
                     "threads": threads,
+                    "save_model": config.save_model,
                 }
             )
 

@@ -147,12 +147,16 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
     config.vis = "tensorboard"  # no viewer server; no event writer is set up either
     config.machine.seed = seed
     config.max_num_iterations = int(budget) if budget_kind == "iterations" else 10**9
+    if spec.get("save_model"):
+        config.save_only_latest_checkpoint = False
     _seed(seed)
 
     # nerfstudio's own models build LPIPS in populate_modules, which downloads AlexNet offline.
     with metrics.offline_lpips():
         trainer = config.setup(local_rank=0, world_size=1)
         trainer.setup()
+    if spec.get("save_model"):
+        config.save_config()  # config.yml beside the checkpoints, as ns-train writes it
     lpips = metrics.make_lpips(normalize=True)
     pipeline = trainer.pipeline
     scale = float(pipeline.datamanager.train_dataparser_outputs.dataparser_scale)
@@ -186,6 +190,8 @@ def run(spec: Dict[str, Any]) -> Dict[str, Any]:
                 peak_rss_mb=_peak_rss_mb(),
             )
             evals.append(record)
+            if spec.get("save_model"):
+                trainer.save_checkpoint(step)  # one per evaluation: each point of the curve can be inspected
             _emit("eval", step=step, train_time=train_time, metrics=record["metrics"])
             next_eval += 1
             if clock() >= budget:
