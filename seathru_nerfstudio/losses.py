@@ -21,23 +21,6 @@ def rawnerf_loss(
     return torch.mean(((pred - target) / scale) ** 2)
 
 
-def ray_weighted_colour_loss(
-    pred: Float[Tensor, "*batch 3"],
-    target: Float[Tensor, "*batch 3"],
-    ray_weight: Float[Tensor, "*batch 1"],
-    relative: bool,
-    eps: float = 1e-3,
-) -> Float[Tensor, ""]:
-    """The colour loss (RawNeRF's relative L2 if ``relative``, else plain L2) with each ray
-    weighted by ``ray_weight >= 0`` (no gradient), normalised by the weights' sum:
-    ``sum_r w_r e_r / (3 max(sum_r w_r, 1e-12))`` with ``e_r`` the ray's squared (relative) error
-    summed over channels. With equal weights it is :func:`rawnerf_loss` (or the mean squared error)."""
-    scale = pred.detach().clamp_min(0.0) + eps if relative else torch.ones_like(pred)
-    per_ray = (((pred - target) / scale) ** 2).sum(dim=-1, keepdim=True)
-    weight = ray_weight.detach().to(per_ray.dtype)
-    return (weight * per_ray).sum() / (pred.shape[-1] * torch.clamp(weight.sum(), min=1e-12))
-
-
 def binary_transmittance_loss(
     transmittance: Float[Tensor, "*batch S 1"], scale: float = 0.1, empty_weight: float = 1.0
 ) -> Float[Tensor, ""]:

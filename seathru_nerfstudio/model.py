@@ -25,12 +25,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio import diagnostics, metrics, viewer
 from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
 from seathru_nerfstudio.lazy_outputs import LazyOutputs
-from seathru_nerfstudio.losses import (
-    backscatter_envelope_loss,
-    binary_transmittance_loss,
-    rawnerf_loss,
-    ray_weighted_colour_loss,
-)
+from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import (
     MEDIUM_MODELS,
@@ -124,13 +119,6 @@ class SeathruModelConfig(NerfactoModelConfig):
     shows an empty scene: the object field enters the full model with the capture's geometry
     instead of a faint fog, as WaterSplatting starts from the SfM points. The object colour
     waits for the next stage."""
-    veil_from_open_water: bool = False
-    """With ``first_stage_geometry``: in the ``medium_first_steps`` stage each ray's colour loss is
-    weighted by the learning geometry's transmittance (no gradient), so that the veiling light fits
-    the rays that see no object (open water; without open water, the least opaque rays) instead of
-    the mean of the images. The plain mean is darker than the open water wherever the objects are,
-    and when the object field started, it brightened the open water with an opaque wall that the
-    binary prior then kept (measured on ``water``, docs/benchmarks.md, session 8)."""
     medium_envelope_quantile: float = 0.0
     """If > 0, in the medium-first stage both densities also fit the backscatter as this lower
     quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
@@ -196,11 +184,6 @@ class SeathruModelConfig(NerfactoModelConfig):
                 "seathru: medium_model auto decides at medium_auto_decision_step "
                 f"({self.medium_auto_decision_step}), which must come after medium_first_steps "
                 f"({self.medium_first_steps}), from medium_auto_evidence_steps ({self.medium_auto_evidence_steps}) > 0 steps"
-            )
-        if self.veil_from_open_water and not self.first_stage_geometry:
-            raise ValueError(
-                "seathru: veil_from_open_water weights the first stage's colour loss by the geometry that "
-                "first_stage_geometry learns; set --pipeline.model.first-stage-geometry True as well"
             )
         if self.predict_normals:
             raise ValueError(
@@ -481,13 +464,9 @@ class SeathruModel(NerfactoModel):
             sigma_bs=medium.sigma_bs,
             quadrature=self.config.quadrature,
         )
-        outputs = self._collect_outputs(
+        return self._collect_outputs(
             ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, densities_for_envelope
         )
-        if geometry is not None and self.config.veil_from_open_water:
-            # the probability that the ray sees no object, by the geometry learnt so far
-            outputs["veil_fit_weight"] = (1.0 - geometry[0].detach().sum(dim=-2)).clamp(0.0, 1.0)
-        return outputs
 
     @property
     def clear_air(self) -> bool:
@@ -648,14 +627,6 @@ class SeathruModel(NerfactoModel):
         if self.config.color_space == "linear" and not nerfacto_objective:
             image = batch["image"][..., :3].to(self.device)
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=self.config.rawnerf_eps)
-        if "veil_fit_weight" in outputs:  # first stage, veil_from_open_water
-            loss_dict["rgb_loss"] = ray_weighted_colour_loss(
-                outputs["rgb"],
-                batch["image"][..., :3].to(self.device),
-                outputs["veil_fit_weight"],
-                relative=self.config.color_space == "linear",
-                eps=self.config.rawnerf_eps,
-            )
         if self.training and self.config.binary_prior_mult > 0 and not nerfacto_objective:
             loss_dict["binary_prior_loss"] = self.config.binary_prior_mult * binary_transmittance_loss(
                 outputs["transmittance"],

@@ -71,33 +71,3 @@ def test_finite_with_gradients_for_extreme_densities_and_ranges():
 def test_quantile_out_of_range_is_refused():
     with pytest.raises(ValueError, match="quantile"):
         backscatter_envelope_loss(torch.zeros(1, 3), torch.ones(1, 1), torch.zeros(1, 3), torch.ones(1, 3), 1.0)
-
-
-def test_ray_weighted_colour_loss_reduces_to_the_unweighted_losses_and_ignores_zero_weight_rays():
-    from seathru_nerfstudio.losses import rawnerf_loss, ray_weighted_colour_loss
-
-    g = torch.Generator().manual_seed(0)
-    pred, target = torch.rand(64, 3, generator=g), torch.rand(64, 3, generator=g)
-    ones = torch.ones(64, 1)
-    torch.testing.assert_close(ray_weighted_colour_loss(pred, target, 2.5 * ones, relative=True), rawnerf_loss(pred, target))
-    torch.testing.assert_close(ray_weighted_colour_loss(pred, target, ones, relative=False), torch.mean((pred - target) ** 2))
-    # rays of weight 0 do not count: the loss is that of the others alone
-    keep = torch.rand(64, 1, generator=g) < 0.3
-    rubbish = torch.where(keep, target, torch.full_like(target, 1e3))
-    weighted = ray_weighted_colour_loss(pred, rubbish, keep.float(), relative=False)
-    torch.testing.assert_close(weighted, torch.mean((pred[keep[:, 0]] - target[keep[:, 0]]) ** 2))
-    # the minimiser of a constant prediction is the weighted mean of the targets
-    veil = torch.zeros(3, requires_grad=True)
-    weight = torch.rand(64, 1, generator=g)
-    optimiser = torch.optim.Adam([veil], lr=0.05)
-    for _ in range(800):
-        loss = ray_weighted_colour_loss(veil.expand(64, 3), target, weight, relative=False)
-        optimiser.zero_grad()
-        loss.backward()
-        optimiser.step()
-    torch.testing.assert_close(veil.detach(), (weight * target).sum(0) / weight.sum(), atol=1e-3, rtol=0)
-    # no weight at all: finite, and no gradient anywhere
-    pred.requires_grad_(True)
-    zero = ray_weighted_colour_loss(pred, target, torch.zeros(64, 1), relative=True)
-    zero.backward()
-    assert zero == 0 and torch.all(pred.grad == 0)

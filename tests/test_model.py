@@ -440,29 +440,6 @@ def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an
                 model.get_loss_dict(out, no_depth, model.get_metrics_dict(out, no_depth))
 
 
-def test_veil_from_open_water_weights_the_first_stage_colour_loss_by_the_geometry_transmittance():
-    from seathru_nerfstudio.losses import ray_weighted_colour_loss
-
-    with pytest.raises(ValueError, match="first-stage-geometry True"):
-        SeathruModelConfig(veil_from_open_water=True)
-    model = tiny_model(medium_first_steps=5, first_stage_geometry=True, veil_from_open_water=True, depth_loss_mult=1.0)
-    model.train()
-    model.train_step = 0
-    bundle = rays(16, seed=7)
-    bundle.metadata["directions_norm"] = torch.ones(16, 1)
-    out = model(bundle)
-    seen = 1.0 - out["weights_list"][-1].detach().sum(dim=-2)  # the geometry's "sees nothing"
-    torch.testing.assert_close(out["veil_fit_weight"], seen.clamp(0, 1))
-    assert not out["veil_fit_weight"].requires_grad
-    batch = {"image": torch.rand(16, 3), "depth_image": torch.full((16, 1), 0.6)}
-    losses = model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))
-    expected = ray_weighted_colour_loss(out["rgb"], batch["image"], out["veil_fit_weight"], relative=True)
-    torch.testing.assert_close(losses["rgb_loss"], expected)
-    model.train_step = 5  # the object stage: no weighting
-    out = model(bundle)
-    assert "veil_fit_weight" not in out
-
-
 def test_predict_normals_is_refused_with_a_clear_message():
     with pytest.raises(ValueError, match="predict_normals=True is not supported"):
         SeathruModelConfig(predict_normals=True)
