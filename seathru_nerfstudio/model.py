@@ -113,12 +113,16 @@ class SeathruModelConfig(NerfactoModelConfig):
     images' average water colour), then the object field starts. The untrained veiling light
     (0.5) is far brighter than dark water; if the object field learns first, it cancels it with a
     black screen in front of the lens (measured: clean image black, open water opaque)."""
-    first_stage_geometry: bool = False
+    first_stage_geometry: bool = True
     """In the ``medium_first_steps`` stage the object *density* also learns, from the SfM depth
     loss and the empty-space prior (the proposal samplers follow it), while the image still
     shows an empty scene: the object field enters the full model with the capture's geometry
     instead of a faint fog, as WaterSplatting starts from the SfM points. The object colour
-    waits for the next stage."""
+    waits for the next stage. Without depth images nothing trains the geometry in that stage
+    (the prior alone would only erase it). Measured (docs/benchmarks.md, sessions 4 and 8): it
+    keeps the object field from walling off the open water when it starts (water: no wall in 3
+    runs of 3; without it a wall in 2 of 4, once kept to step 6000), fixes the oracle-medium run
+    (clean 7.1 -> 24.3 dB) and fog's dead clean image (11.1 -> 16.6 dB), +1.4 dB clean on turbid."""
     medium_envelope_quantile: float = 0.0
     """If > 0, in the medium-first stage both densities also fit the backscatter as this lower
     quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
@@ -289,8 +293,11 @@ class SeathruModel(NerfactoModel):
         """True in the first ``medium_first_steps`` training steps, where only the medium learns.
 
         With a fixed medium (``medium_oracle``) only if the geometry learns in it
-        (``first_stage_geometry``): otherwise there would be nothing to learn."""
-        medium_learns = self.medium_model != "none" and any(p.requires_grad for p in self.medium_field.parameters())
+        (``first_stage_geometry``): otherwise there would be nothing to learn. Never for the
+        ``none`` model: clear air has no medium to learn first."""
+        if self.medium_model == "none":  # clear air: nerfacto from step 0
+            return False
+        medium_learns = any(p.requires_grad for p in self.medium_field.parameters())
         return (
             (medium_learns or self.config.first_stage_geometry)
             and self.training
@@ -627,7 +634,8 @@ class SeathruModel(NerfactoModel):
         if self.config.color_space == "linear" and not nerfacto_objective:
             image = batch["image"][..., :3].to(self.device)
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=self.config.rawnerf_eps)
-        if self.training and self.config.binary_prior_mult > 0 and not nerfacto_objective:
+        no_geometry_yet = self.object_frozen and "depth_image" not in batch and self.config.depth_source == "sfm"
+        if self.training and self.config.binary_prior_mult > 0 and not nerfacto_objective and not no_geometry_yet:
             loss_dict["binary_prior_loss"] = self.config.binary_prior_mult * binary_transmittance_loss(
                 outputs["transmittance"],
                 scale=self.config.binary_prior_scale,

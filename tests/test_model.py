@@ -391,11 +391,11 @@ def test_medium_first_steps_freeze_the_object_field_only():
 
 
 def test_medium_first_steps_do_not_freeze_the_object_field_under_a_fixed_medium(tmp_path):
-    # With the true medium held fixed nothing would learn in that stage (and the loss would
-    # have no gradient at all), so the object field trains from step 0.
+    # With the true medium held fixed and no geometry stage nothing would learn in that stage
+    # (and the loss would have no gradient at all), so the object field trains from step 0.
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
-    model = tiny_model(medium_first_steps=5, medium_oracle=tmp_path / "medium.json")
+    model = tiny_model(medium_first_steps=5, medium_oracle=tmp_path / "medium.json", first_stage_geometry=False)
     model.train()
     model.train_step = 0
     assert not model.object_frozen
@@ -438,6 +438,25 @@ def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an
             no_depth = {"image": batch["image"]}
             with pytest.raises(ValueError, match="medium-first-steps 0"):
                 model.get_loss_dict(out, no_depth, model.get_metrics_dict(out, no_depth))
+
+
+def test_first_stage_without_depth_images_trains_no_geometry():
+    """The geometry stage is the default; without SfM depths only the prior would act on the
+    geometry, and it would only erase it: the density waits, as the colour does."""
+    model = tiny_model(medium_first_steps=5)
+    assert model.config.first_stage_geometry
+    model.train()
+    model.train_step = 0
+    assert model.object_frozen
+    out = model(rays(16, seed=7))
+    batch = {"image": torch.rand(16, 3)}
+    losses = model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))
+    assert "binary_prior_loss" not in losses and "depth_loss" not in losses
+    model.zero_grad()
+    sum(losses.values()).backward()
+    base = [p for n, p in model.field.named_parameters() if "mlp_base" in n]
+    assert base and all(p.grad is None or p.grad.abs().sum() == 0 for p in base)
+    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.medium_field.parameters())
 
 
 def test_predict_normals_is_refused_with_a_clear_message():
