@@ -40,32 +40,3 @@ def test_ns_train_help_lists_both_methods(monkeypatch, capsys):
     assert "separates the scene from water" in text
     assert "AkerBP" not in text
 
-
-def test_medium_densities_learn_slowly_while_the_object_field_forms_then_fast():
-    """The densities' learning rate ramps from 1e-3 to 5e-2 over 400 steps, then decays; the
-    veiling light's starts fast (docs/benchmarks.md, session 8)."""
-    import torch
-
-    from seathru_nerfstudio.config import seathru_nerf_lite_config
-
-    optimizers = seathru_nerf_lite_config().optimizers
-
-    def rates(group: str, steps):
-        param = torch.nn.Parameter(torch.zeros(1))
-        config = optimizers[group]
-        optimizer = config["optimizer"].setup(params=[param])
-        scheduler = config["scheduler"].setup().get_scheduler(optimizer=optimizer, lr_init=config["optimizer"].lr)
-        out = {}
-        for step in range(max(steps) + 1):
-            if step in steps:
-                out[step] = optimizer.param_groups[0]["lr"]
-            optimizer.step()
-            scheduler.step()
-        return out
-
-    density = rates("medium_density", [0, 200, 400, 1500, 6000])
-    assert density[0] < 2e-3 < density[200] < density[400]
-    assert abs(density[400] - 5e-2) < 1e-3 and density[400] > density[1500] > density[6000]
-    assert abs(density[6000] - 5e-4) < 1e-4
-    veil = rates("medium", [0, 400])
-    assert abs(veil[0] - 5e-2) < 1e-6
