@@ -67,8 +67,8 @@ class SeathruModelConfig(NerfactoModelConfig):
     direction). ``scene``: one homogeneous water body, nine learned constants."""
     medium_oracle: Optional[Path] = None
     """Diagnostic: a ``medium.json`` (``beta_D``, ``beta_B`` in 1/world unit, ``B_inf``, as
-    ``seathru-synth`` writes) whose medium is held fixed; only the object field learns. Run it
-    with ``first_stage_geometry``: without it, the object field trained under the true medium from
+    ``seathru-synth`` writes) whose medium is held fixed; only the object field learns. Keep
+    ``first_stage_geometry`` on (the default): without it, the object field trained under the true medium from
     step 0 loses its green and blue colour within 20 steps and settles at twice the range
     (docs/benchmarks.md, session 4)."""
     object_view_dependent: bool = False
