@@ -227,6 +227,20 @@ def test_collider_uses_the_scenes_near_bound_when_the_dataparser_gives_one():
     assert tiny_model().collider.near_plane == config.near_plane
 
 
+@pytest.mark.parametrize("render_from_near_bound, render_near", [(True, 0.45), (False, 0.0)])
+def test_renders_start_at_the_near_bound_that_training_used(render_from_near_bound, render_near):
+    """Outside training nerfstudio's collider starts rays at 0, in space no training ray sampled."""
+    config = tiny_model(render_from_near_bound=render_from_near_bound).config
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    model = config.setup(scene_box=box, num_train_data=4, metadata={"near_plane": 0.5, "far_plane": 9.0})
+    model.train()
+    assert torch.allclose(model.collider(rays(4, seed=1)).nears, torch.full((4, 1), 0.45))
+    model.eval()
+    rendered = model.collider(rays(4, seed=1))
+    assert torch.allclose(rendered.nears, torch.full((4, 1), render_near))
+    assert torch.allclose(rendered.fars, torch.full((4, 1), 18.0))
+
+
 def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():
     model = tiny_model(medium_warmup_steps=100)
     model.eval()
