@@ -15,7 +15,15 @@ import torch
 
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.bench import report, scoring
-from seathru_nerfstudio.bench.methods import MethodSpecError, build_config, matched_nerfacto_config, override_flags, parse_spec
+from seathru_nerfstudio.bench.methods import (
+    MAX_LABEL_CHARS,
+    MethodSpecError,
+    build_config,
+    matched_nerfacto_config,
+    method_label,
+    override_flags,
+    parse_spec,
+)
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -332,3 +340,14 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
     assert "| water | `seathru-nerf-lite` | 3 |" in table and "| water | `nerfacto` | 3 |" in table
     png = (out / "bench_water.png").read_bytes()
     assert png.startswith(PNG_MAGIC) and len(png) > 10_000
+
+
+def test_method_labels_fit_a_file_name_and_stay_unique(tmp_path):
+    """A spec with many overrides once made a run directory name past the file system's limit."""
+    overrides = ",".join(f"optimizers.medium_density.scheduler.option_{i}=0.00{i}" for i in range(8))
+    long_a, long_b = f"seathru-nerf-lite:{overrides}", f"seathru-nerf-lite:{overrides}1"
+    label_a, label_b = method_label(long_a), method_label(long_b)
+    assert len(label_a) == MAX_LABEL_CHARS and label_a != label_b
+    assert label_a == method_label(long_a)  # the same spec finds the same directory
+    (tmp_path / label_a).mkdir()
+    assert method_label("seathru-nerf-lite:medium_model=none") == "seathru-nerf-lite_medium_model_none"

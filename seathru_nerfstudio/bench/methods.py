@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import copy
 import dataclasses
+import hashlib
 import io
 import re
 from typing import Any, Dict, List, Tuple
@@ -151,6 +152,15 @@ def build_config(spec: str) -> TrainerConfig:
     return config
 
 
+MAX_LABEL_CHARS = 120
+"""Longest method label used as a directory name (file systems stop at 255 bytes per name)."""
+
+
 def method_label(spec: str) -> str:
-    """A file-name-safe label of a spec."""
-    return "".join(c if c.isalnum() or c in "-_." else "_" for c in spec)
+    """A file-name-safe label of a spec, unique per spec: a spec with many overrides is cut to
+    ``MAX_LABEL_CHARS`` and ends in a hash of the whole spec."""
+    label = "".join(c if c.isalnum() or c in "-_." else "_" for c in spec)
+    if len(label) <= MAX_LABEL_CHARS:
+        return label
+    digest = hashlib.sha1(spec.encode()).hexdigest()[:10]
+    return f"{label[: MAX_LABEL_CHARS - len(digest) - 1]}-{digest}"
