@@ -110,7 +110,7 @@ class SeathruModelConfig(NerfactoModelConfig):
     wall behind the open water. 0: nerfacto's ``far_plane``."""
     render_from_near_bound: bool = True
     """Renders outside training (evaluation, the viewer, ``ns-render``) start their rays at the
-    near bound, as training does. nerfstudio starts them at 0, which shows the space in front of
+    near bound (the scene's, or ``near_plane`` without one), as training does. nerfstudio starts them at 0, which shows the space in front of
     the near bound: no training ray samples it, so it holds whatever the object field has there
     (measured on the water demo, held-out views: open-water opacity 0.20, PSNR 28.2 dB; with the
     near bound 43.8 dB). Off: a camera closer to the scene than the near bound still sees it."""
@@ -238,11 +238,9 @@ class SeathruModel(NerfactoModel):
             far = self.config.far_plane
             if self.config.far_bound_margin > 0 and "far_plane" in metadata:
                 far = self.config.far_bound_margin * float(metadata["far_plane"])
-            self.collider = NearFarCollider(
-                near_plane=0.9 * float(metadata["near_plane"]),
-                far_plane=far,
-                reset_near_plane=not self.config.render_from_near_bound,
-            )
+            self.collider = NearFarCollider(near_plane=0.9 * float(metadata["near_plane"]), far_plane=far)
+        # Renders start where training rays start (the near bound above, or nerfacto's near_plane).
+        self.collider.reset_near_plane = not self.config.render_from_near_bound
         # Viewer controls (no parameters; never applied in training).
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
         self.medium_controls_enabled = True

@@ -239,6 +239,10 @@ def test_renders_start_at_the_near_bound_that_training_used(render_from_near_bou
     rendered = model.collider(rays(4, seed=1))
     assert torch.allclose(rendered.nears, torch.full((4, 1), render_near))
     assert torch.allclose(rendered.fars, torch.full((4, 1), 18.0))
+    without_bounds = tiny_model(render_from_near_bound=render_from_near_bound)
+    without_bounds.eval()
+    expected = config.near_plane if render_from_near_bound else 0.0
+    assert torch.allclose(without_bounds.collider(rays(4, seed=1)).nears, torch.full((4, 1), expected))
 
 
 def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():

@@ -39,4 +39,3 @@ def test_ns_train_help_lists_both_methods(monkeypatch, capsys):
     assert "seathru-nerf-lite" in text and "SeaThru-NeRF sized for a CPU" in text
     assert "separates the scene from water" in text
     assert "AkerBP" not in text
-
