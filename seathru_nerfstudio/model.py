@@ -102,7 +102,15 @@ class SeathruModelConfig(NerfactoModelConfig):
     """``auto``: after the decision the medium moves linearly from the learned ``seathru`` medium
     to the chosen model over this many steps, and the object density is held (no gradient) in
     the meantime, so that the object colour follows instead of the geometry (measured on the clear
-    scene, docs/benchmarks.md: switching abruptly or blending alone emptied the geometry)."""
+    scene, docs/benchmarks.md: switching abruptly or blending alone emptied the geometry). Not
+    when ``none`` restarts the object field (``medium_auto_none_restart``)."""
+    medium_auto_none_restart: bool = True
+    """``auto``: when it chooses ``none``, the object field and the proposal networks go back to
+    what they were at the end of the first stage (the SfM geometry, no colour yet) and train as
+    nerfacto from there, with no blend. What they learned in the warm-up makes up for an
+    attenuation that clear air does not have: the colour brightens far surfaces and the geometry
+    moves (measured on the clear demo, docs/benchmarks.md, session 10). Needs ``medium_first_steps``
+    > 0 and the first stage's end in this run (not a resume between the two): else the blend."""
     far_bound_margin: float = 2.0
     """If > 0 and the dataparser gives the scene's far bound (SfM depths, poses_bounds.npy),
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
@@ -226,9 +234,12 @@ class SeathruModel(NerfactoModel):
         """Index in ``MEDIUM_MODELS`` of the medium model in use (``UNDECIDED``: ``auto`` before its
         decision); a buffer, so that checkpoints record the model ``auto`` chose."""
         self.register_buffer("medium_model_step", torch.tensor(-1, dtype=torch.long))
-        """The step at which ``auto`` decided (-1: it did not), where the blend to the choice starts."""
+        """The step at which the blend from ``seathru`` to ``auto``'s choice starts (-1: no blend)."""
         self.auto_evidence: List[MediumEvidence] = []
         """``auto``: the evidence of the steps before the decision."""
+        self.first_stage_object: Optional[Dict[str, Dict[str, torch.Tensor]]] = None
+        """``auto`` before its decision: copies of the object field's and the proposal networks'
+        state at the end of the first stage, for ``medium_auto_none_restart``."""
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
         if "near_plane" in metadata:
@@ -352,18 +363,38 @@ class SeathruModel(NerfactoModel):
     def _decide_medium_model(self, step: int) -> None:
         """``auto``: at ``medium_auto_decision_step``, keep the simplest medium model the warm-up's
         medium allows. Only the tying of the medium changes: the object field and the medium's
-        parameters carry on as they are (a tied model starts from the mean of what was learned)."""
-        if int(self.medium_model_code) != UNDECIDED or step + 1 < self.config.medium_auto_decision_step:
+        parameters carry on as they are (a tied model starts from the mean of what was learned),
+        except that ``none`` restarts the object field from the end of the first stage
+        (``medium_auto_none_restart``), which is why this also runs at that step."""
+        if int(self.medium_model_code) != UNDECIDED:
+            return
+        if step + 1 == self.config.medium_first_steps and self.config.medium_auto_none_restart:
+            self.first_stage_object = self._object_state()
+        if step + 1 < self.config.medium_auto_decision_step:
             return
         evidence = self._mean_evidence()
         if evidence is None:
             return  # resumed right before the decision: gather the evidence first
         chosen, reason = choose_medium_model(evidence, self.config.medium_auto_rule)
         self.medium_model_code.fill_(MEDIUM_MODELS.index(chosen))
-        if chosen != "seathru":  # the warm-up's own model: nothing to blend
+        if chosen == "none" and self.first_stage_object is not None:
+            self.field.load_state_dict(self.first_stage_object["field"])
+            self.proposal_networks.load_state_dict(self.first_stage_object["proposal_networks"])
+            reason += "; the object field restarts from the end of the first stage"
+        elif chosen != "seathru":  # the warm-up's own model: nothing to blend
             self.medium_model_step.fill_(step + 1)
+        self.first_stage_object = None
         self.auto_evidence.clear()
         CONSOLE.print(f"[bold]seathru step {step}: medium model auto -> {chosen}[/] ({reason})")
+
+    def _object_state(self) -> Dict[str, Dict[str, torch.Tensor]]:
+        """Copies of the object field's and the proposal networks' parameters and buffers."""
+        return {
+            "field": {name: value.detach().clone() for name, value in self.field.state_dict().items()},
+            "proposal_networks": {
+                name: value.detach().clone() for name, value in self.proposal_networks.state_dict().items()
+            },
+        }
 
     def _record_evidence(self, values: Dict[str, torch.Tensor]) -> None:
         """``auto``: keep this step's medium diagnostics if the decision is near."""

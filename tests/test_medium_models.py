@@ -257,6 +257,52 @@ def test_auto_settings_are_checked():
     assert model.config.medium_model == "seathru"
 
 
+def _object_values(model) -> dict:
+    return {
+        name: value.clone()
+        for name, value in list(model.field.state_dict().items())
+        + [(f"proposal.{k}", v) for k, v in model.proposal_networks.state_dict().items()]
+    }
+
+
+def _perturb_object(model) -> None:
+    """What the warm-up's training would do to the object field and the proposal networks."""
+    with torch.no_grad():
+        for parameter in list(model.field.parameters()) + list(model.proposal_networks.parameters()):
+            parameter.add_(0.5)
+
+
+@pytest.mark.parametrize("share, chosen", [(0.0, "none"), (0.5, "seathru")])
+def test_auto_choosing_none_restarts_the_object_field_from_the_end_of_the_first_stage(share, chosen):
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    _perturb_object(model)  # the first stage's geometry
+    model._decide_medium_model(9)  # the first stage's last step
+    at_first_stage_end = _object_values(model)
+    _perturb_object(model)  # the warm-up
+    after_warm_up = _object_values(model)
+    feed_evidence(model, evidence(share=share), range(20, 40))
+    model._decide_medium_model(39)
+    assert model.medium_model == chosen
+    expected = at_first_stage_end if chosen == "none" else after_warm_up
+    for name, value in _object_values(model).items():
+        torch.testing.assert_close(value, expected[name], rtol=0, atol=0, msg=name)
+    model.train_step = 40
+    # no blend after a restart: clear air at once
+    assert model.medium_blend == 1.0 and model.clear_air == (chosen == "none")
+    assert model.first_stage_object is None  # the copy is dropped once decided
+
+
+def test_auto_without_the_first_stage_copy_blends_to_none():
+    """A run resumed between the first stage and the decision has no copy: the blend instead."""
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    after_warm_up = _object_values(model)
+    feed_evidence(model, evidence(share=0.0), range(20, 40))
+    model._decide_medium_model(39)
+    assert model.medium_model == "none" and int(model.medium_model_step) == 40
+    for name, value in _object_values(model).items():
+        torch.testing.assert_close(value, after_warm_up[name], rtol=0, atol=0, msg=name)
+
+
 def test_after_the_decision_the_medium_blends_to_the_choice_and_the_geometry_holds():
     model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100)
     feed_evidence(model, evidence(share=0.0), range(20, 40))
