@@ -153,11 +153,16 @@ class SceneMedium(nn.Module):
     water, which on a homogeneous scene lets the medium explain scene content per ray.
     """
 
-    def __init__(self, init_density: float = 0.5, init_rgb: float = 0.5) -> None:
+    def __init__(
+        self, init_density: float | Sequence[float] = 0.5, init_rgb: float | Sequence[float] = 0.5
+    ) -> None:
+        """``init_density``: one value for all six densities, or ``sigma_attn`` then ``sigma_bs``
+        per channel (per scene unit, > 0); ``init_rgb``: one value or three, in (0, 1)."""
         super().__init__()
-        rgb_logit = float(torch.logit(torch.tensor(float(init_rgb))))
-        self.rgb_logit = nn.Parameter(torch.full((3,), rgb_logit))
-        self.density_raw = nn.Parameter(torch.full((6,), inverse_softplus(init_density)))
+        rgb = torch.as_tensor(init_rgb, dtype=torch.float64).expand(3)
+        self.rgb_logit = nn.Parameter(torch.logit(rgb).float().clone())
+        densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
+        self.density_raw = nn.Parameter(torch.tensor([inverse_softplus(float(d)) for d in densities]))
 
     def density_parameters(self) -> list:
         """The attenuation and backscatter densities: weakly determined by the images, so they

@@ -71,6 +71,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     ``first_stage_geometry`` on (the default): without it, the object field trained under the true medium from
     step 0 loses its green and blue colour within 20 steps and settles at twice the range
     (docs/benchmarks.md, session 4)."""
+    medium_oracle_learns: bool = False
+    """Diagnostic, with ``medium_oracle``: the per-scene medium starts at the oracle's values and
+    learns, instead of being held: does the objective keep the true medium, or move away from it?"""
     object_view_dependent: bool = False
     """Object colour depends on the view direction (nerfacto). Off: Lambertian colour, as
     the official SeaThru-NeRF; then a view-dependent look must come from the medium."""
@@ -261,6 +264,9 @@ class SeathruModel(NerfactoModel):
     def _build_medium(self):
         if self.config.medium_oracle is not None:
             truth = json.loads(Path(self.config.medium_oracle).read_text())
+            if self.config.medium_oracle_learns:
+                densities = [b / self.world_scale for b in [*truth["beta_D"], *truth["beta_B"]]]
+                return SceneMedium(init_density=densities, init_rgb=truth["B_inf"])
             # 1/world unit -> 1/scene unit
             return FixedMedium(
                 rgb=truth["B_inf"],

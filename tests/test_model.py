@@ -422,6 +422,24 @@ def test_medium_first_steps_do_not_freeze_the_object_field_under_a_fixed_medium(
     assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
 
 
+def test_a_learning_oracle_starts_at_the_truth_and_its_medium_learns(tmp_path):
+    truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
+    (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    config = tiny_model().config
+    config.medium_oracle = tmp_path / "medium.json"
+    config.medium_oracle_learns = True
+    model = config.setup(scene_box=box, num_train_data=4, metadata={"dataparser_scale": 2.5})
+    model.eval()
+    with torch.no_grad():
+        out = model(rays(4))
+    torch.testing.assert_close(out["medium_attenuation"], torch.tensor([[1.3, 1.2, 0.9]]).expand(4, 3) / 2.5)
+    torch.testing.assert_close(out["medium_backscatter"], torch.tensor([[0.95, 0.85, 0.7]]).expand(4, 3) / 2.5)
+    torch.testing.assert_close(out["medium_rgb"], torch.tensor([[0.07, 0.2, 0.39]]).expand(4, 3))
+    groups = model.get_param_groups()
+    assert groups["medium_density"] and groups["medium"]  # it learns, in the groups of a learned medium
+
+
 def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an_empty_scene(tmp_path):
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
