@@ -15,6 +15,7 @@ from torch.nn import Parameter
 from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.cameras.rays import RayBundle
 from nerfstudio.engine.callbacks import TrainingCallback, TrainingCallbackAttributes, TrainingCallbackLocation
+from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.field_components.field_heads import FieldHeadNames
 from nerfstudio.model_components.losses import DepthLossType, depth_loss, scale_gradients_by_distance_squared
 from nerfstudio.model_components.scene_colliders import NearFarCollider
@@ -107,13 +108,15 @@ class SeathruModelConfig(NerfactoModelConfig):
     the meantime, so that the object colour follows instead of the geometry (measured on the clear
     scene, docs/benchmarks.md: switching abruptly or blending alone emptied the geometry). Not
     when ``none`` restarts the object field (``medium_auto_none_restart``)."""
-    medium_auto_none_restart: bool = True
+    medium_auto_none_restart: Literal["first-stage", "initial", "off"] = "first-stage"
     """``auto``: when it chooses ``none``, the object field and the proposal networks go back to
-    what they were at the end of the first stage (the SfM geometry, no colour yet) and train as
+    what they were at the end of the first stage (``first-stage``: the SfM geometry, no colour
+    yet) or before training (``initial``), their optimiser state is cleared, and they train as
     nerfacto from there, with no blend. What they learned in the warm-up makes up for an
     attenuation that clear air does not have: the colour brightens far surfaces and the geometry
-    moves (measured on the clear demo, docs/benchmarks.md, session 10). Needs ``medium_first_steps``
-    > 0 and the first stage's end in this run (not a resume between the two): else the blend."""
+    moves (measured on the clear demo, docs/benchmarks.md, session 10). ``first-stage`` needs
+    ``medium_first_steps`` > 0 and the first stage's end in this run (not a resume between the
+    two): else, and with ``off``, the blend."""
     far_bound_margin: float = 2.0
     """If > 0 and the dataparser gives the scene's far bound (SfM depths, poses_bounds.npy),
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
@@ -242,7 +245,9 @@ class SeathruModel(NerfactoModel):
         """``auto``: the evidence of the steps before the decision."""
         self.first_stage_object: Optional[Dict[str, Dict[str, torch.Tensor]]] = None
         """``auto`` before its decision: copies of the object field's and the proposal networks'
-        state at the end of the first stage, for ``medium_auto_none_restart``."""
+        state to restart ``none`` from (``medium_auto_none_restart``)."""
+        if self.config.medium_model == "auto" and self.config.medium_auto_none_restart == "initial":
+            self.first_stage_object = self._object_state()
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
         if "near_plane" in metadata:
@@ -349,11 +354,12 @@ class SeathruModel(NerfactoModel):
             self.train_step = step
 
         if self.config.medium_model == "auto":
+            optimizers = training_callback_attributes.optimizers
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
                     update_every_num_iters=1,
-                    func=self._decide_medium_model,
+                    func=lambda step: self._decide_medium_model(step, optimizers),
                 )
             )
 
@@ -366,15 +372,16 @@ class SeathruModel(NerfactoModel):
         )
         return callbacks
 
-    def _decide_medium_model(self, step: int) -> None:
+    def _decide_medium_model(self, step: int, optimizers: Optional[Optimizers] = None) -> None:
         """``auto``: at ``medium_auto_decision_step``, keep the simplest medium model the warm-up's
         medium allows. Only the tying of the medium changes: the object field and the medium's
         parameters carry on as they are (a tied model starts from the mean of what was learned),
         except that ``none`` restarts the object field from the end of the first stage
-        (``medium_auto_none_restart``), which is why this also runs at that step."""
+        (``medium_auto_none_restart``), which is why this also runs at that step; ``optimizers``:
+        the trainer's, whose state of the restarted parameter groups is cleared."""
         if int(self.medium_model_code) != UNDECIDED:
             return
-        if step + 1 == self.config.medium_first_steps and self.config.medium_auto_none_restart:
+        if step + 1 == self.config.medium_first_steps and self.config.medium_auto_none_restart == "first-stage":
             self.first_stage_object = self._object_state()
         if step + 1 < self.config.medium_auto_decision_step:
             return
@@ -386,7 +393,11 @@ class SeathruModel(NerfactoModel):
         if chosen == "none" and self.first_stage_object is not None:
             self.field.load_state_dict(self.first_stage_object["field"])
             self.proposal_networks.load_state_dict(self.first_stage_object["proposal_networks"])
-            reason += "; the object field restarts from the end of the first stage"
+            for group in ("fields", "proposal_networks"):
+                if optimizers is not None and group in optimizers.optimizers:
+                    optimizers.optimizers[group].state.clear()  # Adam restarts with the parameters
+            start = "the end of the first stage" if self.config.medium_auto_none_restart == "first-stage" else "its initial state"
+            reason += f"; the object field restarts from {start}"
         elif chosen != "seathru":  # the warm-up's own model: nothing to blend
             self.medium_model_step.fill_(step + 1)
         self.first_stage_object = None

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from nerfstudio.data.scene_box import SceneBox
+from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 
 from seathru_nerfstudio import metrics
@@ -272,20 +273,42 @@ def _perturb_object(model) -> None:
             parameter.add_(0.5)
 
 
+def _optimizers_with_state(model) -> Optimizers:
+    """The trainer's optimisers, after one step (so that Adam has state)."""
+    config = {name: {"optimizer": AdamOptimizerConfig(lr=1e-3), "scheduler": None} for name in model.get_param_groups()}
+    optimizers = Optimizers(config, model.get_param_groups())
+    for group in model.get_param_groups().values():
+        for parameter in group:
+            parameter.grad = torch.ones_like(parameter)
+    optimizers.optimizer_step_all()
+    return optimizers
+
+
+@pytest.mark.parametrize("restart", ["first-stage", "initial"])
 @pytest.mark.parametrize("share, chosen", [(0.0, "none"), (0.5, "seathru")])
-def test_auto_choosing_none_restarts_the_object_field_from_the_end_of_the_first_stage(share, chosen):
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+def test_auto_choosing_none_restarts_the_object_field_and_its_optimiser(share, chosen, restart):
+    model = tiny_model(
+        medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_none_restart=restart
+    )
+    initial = _object_values(model)
     _perturb_object(model)  # the first stage's geometry
     model._decide_medium_model(9)  # the first stage's last step
     at_first_stage_end = _object_values(model)
     _perturb_object(model)  # the warm-up
+    optimizers = _optimizers_with_state(model)
     after_warm_up = _object_values(model)
     feed_evidence(model, evidence(share=share), range(20, 40))
-    model._decide_medium_model(39)
+    model._decide_medium_model(39, optimizers)
     assert model.medium_model == chosen
-    expected = at_first_stage_end if chosen == "none" else after_warm_up
+    if chosen == "none":
+        expected = at_first_stage_end if restart == "first-stage" else initial
+    else:
+        expected = after_warm_up
     for name, value in _object_values(model).items():
         torch.testing.assert_close(value, expected[name], rtol=0, atol=0, msg=name)
+    for group, optimizer in optimizers.optimizers.items():
+        restarted = chosen == "none" and group in ("fields", "proposal_networks")
+        assert (len(optimizer.state) == 0) == restarted, group
     model.train_step = 40
     # no blend after a restart: clear air at once
     assert model.medium_blend == 1.0 and model.clear_air == (chosen == "none")
@@ -295,6 +318,7 @@ def test_auto_choosing_none_restarts_the_object_field_from_the_end_of_the_first_
 def test_auto_without_the_first_stage_copy_blends_to_none():
     """A run resumed between the first stage and the decision has no copy: the blend instead."""
     model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    _perturb_object(model)
     after_warm_up = _object_values(model)
     feed_evidence(model, evidence(share=0.0), range(20, 40))
     model._decide_medium_model(39)
