@@ -617,3 +617,46 @@ def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
     out = off(rays(8))
     batch = {"image": torch.rand(8, 3), "depth_image": torch.ones(8, 1)}
     assert "backscatter_envelope_loss" not in off.get_loss_dict(out, batch, off.get_metrics_dict(out, batch))
+
+
+def _with_bounds(**overrides) -> SeathruModel:
+    """A tiny model on a scene whose SfM bounds are 0.2 and 0.6 scene units (r_ref = 0.4)."""
+    config = tiny_model(**overrides).config
+    box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    return config.setup(scene_box=box, num_train_data=4, metadata={"near_plane": 0.2, "far_plane": 0.6})
+
+
+def test_colour_from_the_reference_range_scales_the_direct_light_and_the_clean_image_only():
+    """``J = J' e^{sigma_attn r_ref}``: with the same field values the direct light and the clean
+    image grow by ``e^{sigma_attn r_ref}`` per channel, and the backscatter does not change."""
+    torch.manual_seed(0)
+    plain = _with_bounds(colour_reference_range=False)
+    referenced = _with_bounds(colour_reference_range=True)
+    referenced.load_state_dict(plain.state_dict())
+    assert plain.reference_range == 0 and referenced.reference_range == pytest.approx(0.4)
+    bundle = rays(32, seed=2)
+    outputs = []
+    for model in (plain, referenced):
+        model.eval()
+        torch.manual_seed(1)
+        with torch.no_grad():
+            outputs.append(model(bundle))
+    off, on = outputs
+    gain = torch.exp(off["medium_attenuation"] * 0.4)
+    for name in ("direct", "clean"):
+        torch.testing.assert_close(on[name], off[name] * gain, msg=name)
+    torch.testing.assert_close(on["backscatter"], off["backscatter"])
+    with torch.no_grad():
+        alone = referenced.get_outputs(bundle, with_medium=False)  # the clean view's object-only pass
+    torch.testing.assert_close(alone["clean"], on["clean"])
+
+
+def test_colour_from_the_reference_range_stays_finite_for_any_attenuation():
+    model = _with_bounds(colour_reference_range=True)
+    with torch.no_grad():
+        model.medium_field.density_raw.fill_(1e6)  # sigma_attn r_ref = 4e5, past the cap
+    model.eval()
+    with torch.no_grad():
+        out = model(rays(16, seed=4))
+    for name in ("rgb", "direct", "clean", "backscatter"):
+        assert torch.isfinite(out[name]).all(), name
