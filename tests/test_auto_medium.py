@@ -43,7 +43,7 @@ def train_auto(preset: str, root: Path):
 def test_auto_keeps_no_medium_in_clear_air(tmp_path):
     model = train_auto("none", tmp_path)
     assert model.medium_model == "none"
-    assert int(model.medium_model_step) == -1  # restarted from the first stage's end: no blend
+    assert int(model.medium_model_step) == -1  # restarted (the default): no blend
 
 
 @pytest.mark.slow

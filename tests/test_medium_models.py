@@ -102,7 +102,7 @@ def test_clear_air_trains_with_the_objective_it_is_given(objective):
 
 
 def test_auto_takes_the_clear_air_objective_once_the_blend_to_none_is_over():
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100)
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100, medium_auto_none_restart="off")
     feed_evidence(model, evidence(share=0.0), range(20, 40))
     model._decide_medium_model(39)
     for step, has_prior in ((90, True), (140, False)):
@@ -213,7 +213,13 @@ def feed_evidence(model, values: MediumEvidence, steps: range) -> None:
 
 
 def test_auto_decides_once_at_its_step_from_the_mean_evidence_and_checkpoints_record_it():
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_evidence_steps=20)
+    model = tiny_model(
+        medium_model="auto",
+        medium_first_steps=10,
+        medium_auto_decision_step=40,
+        medium_auto_evidence_steps=20,
+        medium_auto_none_restart="off",
+    )
     assert model.medium_model == "seathru" and int(model.medium_model_code) == UNDECIDED
     field_before = {k: v.clone() for k, v in model.field.state_dict().items()}
     # early evidence is ignored: only the last 20 steps count
@@ -317,7 +323,9 @@ def test_auto_choosing_none_restarts_the_object_field_and_its_optimiser(share, c
 
 def test_auto_without_the_first_stage_copy_blends_to_none():
     """A run resumed between the first stage and the decision has no copy: the blend instead."""
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    model = tiny_model(
+        medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_none_restart="first-stage"
+    )
     _perturb_object(model)
     after_warm_up = _object_values(model)
     feed_evidence(model, evidence(share=0.0), range(20, 40))
@@ -328,7 +336,7 @@ def test_auto_without_the_first_stage_copy_blends_to_none():
 
 
 def test_after_the_decision_the_medium_blends_to_the_choice_and_the_geometry_holds():
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100)
+    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100, medium_auto_none_restart="off")
     feed_evidence(model, evidence(share=0.0), range(20, 40))
     model._decide_medium_model(39)
     assert model.medium_model == "none" and int(model.medium_model_step) == 40
