@@ -49,9 +49,6 @@ MEDIUM_OUTPUTS = ("medium_rgb", "medium_attenuation", "medium_backscatter")
 
 UNDECIDED = -1
 """``medium_model_code`` of an ``auto`` run before its decision (it renders ``seathru``)."""
-MAX_REFERENCE_EXPONENT = 30.0
-"""Cap of ``sigma_attn r_ref`` in :meth:`SeathruModel._colour_from_reference`: keeps ``J`` finite
-for any density (light attenuated by more than e^-30 does not reach the camera anyway)."""
 
 @dataclass
 class SeathruModelConfig(NerfactoModelConfig):
@@ -134,13 +131,6 @@ class SeathruModelConfig(NerfactoModelConfig):
     the near bound: no training ray samples it, so it holds whatever the object field has there
     (measured on the water demo, held-out views: open-water opacity 0.20, PSNR 28.2 dB; with the
     near bound 43.8 dB). Off: a camera closer to the scene than the near bound still sees it."""
-    colour_reference_range: bool = False
-    """The object colour is learned as seen through the water from the middle of the scene's SfM
-    range ``r_ref`` (``J = J' e^{sigma_attn r_ref}``, ``J'`` the field's colour): the direct
-    light ``J' e^{-sigma_attn (t - r_ref)}`` then depends on the attenuation only through the
-    range *differences* that identify it, and an error in the young object field's overall
-    brightness no longer moves it. The clean image is ``J`` as before. Needs the scene's SfM bounds
-    (off without them); ``sigma_attn r_ref`` is capped at 30 (light attenuated by e^-30)."""
     medium_first_steps: int = 200
     """For this many steps the scene is empty and only the veiling light learns (it fits the
     images' average water colour), then the object field starts. The untrained veiling light
@@ -271,10 +261,6 @@ class SeathruModel(NerfactoModel):
             if self.config.far_bound_margin > 0 and "far_plane" in metadata:
                 far = self.config.far_bound_margin * float(metadata["far_plane"])
             self.collider = NearFarCollider(near_plane=0.9 * float(metadata["near_plane"]), far_plane=far)
-        self.reference_range = 0.0
-        """``r_ref`` of ``colour_reference_range`` in scene units (0: off)."""
-        if self.config.colour_reference_range and "near_plane" in metadata and "far_plane" in metadata:
-            self.reference_range = 0.5 * (float(metadata["near_plane"]) + float(metadata["far_plane"]))
         # Renders start where training rays start (the near bound above, or nerfacto's near_plane).
         self.collider.reset_near_plane = not self.config.render_from_near_bound
         # Viewer controls (no parameters; never applied in training).
@@ -516,10 +502,6 @@ class SeathruModel(NerfactoModel):
         if self.config.use_gradient_scaling:
             field_outputs = scale_gradients_by_distance_squared(field_outputs, ray_samples)
         if not with_medium or self.clear_air:
-            if self.reference_range > 0 and not self.clear_air:  # the clean colour is J, not J'
-                field_outputs[FieldHeadNames.RGB] = self._colour_from_reference(
-                    field_outputs[FieldHeadNames.RGB], self.medium_in_use(ray_bundle.directions)
-                )
             render = self._render_clear_air(field_outputs, ray_samples)
             outputs = self._collect_outputs(
                 ray_bundle, ray_samples, weights_list, ray_samples_list, render, clear_medium(ray_bundle.directions), geometry
@@ -528,9 +510,7 @@ class SeathruModel(NerfactoModel):
                 for name in WATER_OUTPUTS + MEDIUM_OUTPUTS:
                     outputs.pop(name)
             return outputs
-        in_use = self.medium_in_use(ray_bundle.directions)  # once per ray
-        medium = self.with_viewer_controls(in_use)
-        object_rgb = self._colour_from_reference(field_outputs[FieldHeadNames.RGB], in_use)
+        medium = self.medium(ray_bundle.directions)  # once per ray
         densities_for_envelope = None
         if self.object_frozen:
             if self.config.medium_envelope_quantile > 0:
@@ -542,7 +522,7 @@ class SeathruModel(NerfactoModel):
         if ramp < 1.0:
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn * ramp, sigma_bs=medium.sigma_bs * ramp)
         render = render_seathru(
-            object_rgb=object_rgb,
+            object_rgb=field_outputs[FieldHeadNames.RGB],
             object_density=field_outputs[FieldHeadNames.DENSITY],
             starts=ray_samples.frustums.starts,
             deltas=ray_samples.deltas,
@@ -564,10 +544,6 @@ class SeathruModel(NerfactoModel):
         """The medium of rays with these unit directions as rendered now: the model in use (tied,
         or zero for ``none``), blended from ``seathru`` just after ``auto`` decided, and outside
         training changed by the viewer's water controls. Clear air evaluates no network."""
-        return self.with_viewer_controls(self.medium_in_use(directions))
-
-    def medium_in_use(self, directions: torch.Tensor) -> MediumOutputs:
-        """The learned medium as the model in use has it, without the viewer's controls."""
         if self.clear_air:
             return clear_medium(directions)
         learned = self.medium_field(directions)
@@ -575,21 +551,9 @@ class SeathruModel(NerfactoModel):
         blend = self.medium_blend
         if blend < 1.0:  # auto, just after its decision
             medium = blend_media(learned, medium, blend)
-        return medium
-
-    def with_viewer_controls(self, medium: MediumOutputs) -> MediumOutputs:
-        """Outside training, the viewer's water density and colour applied to ``medium``."""
         if not self.training and self.medium_controls_enabled:
-            return self.viewer_controls.medium(medium)
+            medium = self.viewer_controls.medium(medium)  # the viewer's water density and colour
         return medium
-
-    def _colour_from_reference(self, reference_rgb: torch.Tensor, medium: MediumOutputs) -> torch.Tensor:
-        """``J = J' e^{sigma_attn r_ref}`` (``colour_reference_range``; the identity when off), per
-        sample ``[..., S, 3]`` from the per-ray learned attenuation ``[..., 3]``."""
-        if self.reference_range <= 0:
-            return reference_rgb
-        exponent = torch.clamp(medium.sigma_attn.float() * self.reference_range, max=MAX_REFERENCE_EXPONENT)
-        return reference_rgb * torch.exp(exponent)[..., None, :]
 
     def _render_clear_air(self, field_outputs, ray_samples) -> SeathruRender:
         """The ``none`` model: nerfacto's rendering (its weights ``T_i (1 - e^{-sigma_i delta_i})``,
