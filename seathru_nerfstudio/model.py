@@ -155,6 +155,10 @@ class SeathruModelConfig(NerfactoModelConfig):
     session 9): on the water demo (seeds 42 and 7) clean 20.3 and 20.8 dB against 19.0 and the
     dim red channel's beta_B within 6% against 54-66% high; on fog (one run) clean 14.1 against
     16.4 dB and the densities further off. Mixed, so off by default. 0: off."""
+    medium_density_hold_steps: int = 0
+    """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
+    the attenuation and backscatter densities are held (no gradient) while the young object colour
+    catches up, so that its early errors cannot move them. 0: off."""
     medium_warmup_steps: int = 0
     """Iterations over which the medium densities ramp up linearly from 0 (clear water); 0: off.
     Experimental: on the demo scene it gave the best in-medium PSNR but baked the water into the
@@ -321,6 +325,16 @@ class SeathruModel(NerfactoModel):
         if warmup <= 0 or self.train_step is None:
             return 1.0
         return min(1.0, self.train_step / warmup)
+
+    @property
+    def densities_held(self) -> bool:
+        """True in the ``medium_density_hold_steps`` training steps after the object field starts."""
+        start = self.config.medium_first_steps
+        return (
+            self.training
+            and self.train_step is not None
+            and start <= self.train_step < start + self.config.medium_density_hold_steps
+        )
 
     @property
     def object_frozen(self) -> bool:
@@ -512,9 +526,9 @@ class SeathruModel(NerfactoModel):
             return outputs
         medium = self.medium(ray_bundle.directions)  # once per ray
         densities_for_envelope = None
-        if self.object_frozen:
-            if self.config.medium_envelope_quantile > 0:
-                densities_for_envelope = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
+        if self.object_frozen and self.config.medium_envelope_quantile > 0:
+            densities_for_envelope = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
+        if self.object_frozen or self.densities_held:
             # An empty scene shows exactly c_med on every ray, whatever the densities: keep round-off
             # gradients (which Adam would scale up to full steps) off them.
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())

@@ -617,3 +617,19 @@ def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
     out = off(rays(8))
     batch = {"image": torch.rand(8, 3), "depth_image": torch.ones(8, 1)}
     assert "backscatter_envelope_loss" not in off.get_loss_dict(out, batch, off.get_metrics_dict(out, batch))
+
+
+def test_densities_are_held_for_the_hold_steps_after_the_object_starts():
+    model = tiny_model(medium_first_steps=5, medium_density_hold_steps=10)
+    model.train()
+    bundle = rays(16, seed=3)
+    for step, held in ((4, True), (5, True), (14, True), (15, False)):
+        model.train_step = step
+        model.zero_grad()
+        out = model(bundle)
+        (out["rgb"].sum() + out["medium_attenuation"].sum()).backward()
+        grad = model.medium_field.density_raw.grad
+        assert (grad is None or bool((grad == 0).all())) == held, step
+        if step >= 5:  # the object colour learns meanwhile
+            head = [p for n, p in model.field.named_parameters() if "mlp_head" in n]
+            assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head), step
