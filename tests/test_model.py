@@ -298,6 +298,7 @@ def test_oracle_medium_is_the_truth_per_scene_unit_and_has_no_parameters(tmp_pat
     torch.testing.assert_close(out["medium_backscatter"], torch.tensor([[0.95, 0.85, 0.7]]).expand(4, 3) / 2.5)
     torch.testing.assert_close(out["medium_rgb"], torch.tensor([[0.07, 0.2, 0.39]]).expand(4, 3))
     assert "medium" not in model.get_param_groups() and "medium_density" not in model.get_param_groups()
+    assert config.medium_model == "seathru"  # the default auto has nothing to choose with an oracle
 
 
 def test_lambertian_object_colour_does_not_depend_on_the_view_direction():
