@@ -318,10 +318,30 @@ def test_turbid_preset_is_deeper_greener_and_follows_the_model(tmp_path: Path):
 
 
 def test_bad_options_are_refused_before_anything_is_written(tmp_path: Path):
-    for bad in ({"num_views": 1}, {"width": 4}, {"supersample": 0}):
+    for bad in ({"num_views": 1}, {"width": 4}, {"supersample": 0}, {"rig_depth": -0.5}):
         with pytest.raises(SynthError):
             generate(SynthConfig(output_dir=tmp_path / "x", **bad))
     assert not any(tmp_path.iterdir())
+
+
+def test_rig_depth_steps_cameras_back_along_the_axis_and_keeps_them_aimed():
+    """``rig_depth`` moves only the centres' z (over [0, rig_depth], jitter aside), draws no extra
+    random numbers, and every camera still looks at the same target: the range of one scene point
+    then differs between views by a large fraction of ``rig_depth``."""
+    from seathru_nerfstudio.data.synthetic.cameras import LOOK_AT, make_poses
+    from seathru_nerfstudio.data.synthetic.scene import Geometry
+
+    flat = make_poses(np.random.default_rng(3), 20, Geometry())
+    deep = make_poses(np.random.default_rng(3), 20, Geometry(rig_depth=1.0))
+    np.testing.assert_allclose(deep[:, :2, 3], flat[:, :2, 3])
+    back = deep[:, 2, 3] - flat[:, 2, 3]
+    assert back.min() >= 0.0 and back.max() <= 1.0 and back.max() - back.min() > 0.9
+    for pose in deep:  # the viewing axis (-z) passes within the target jitter of LOOK_AT
+        to_target = LOOK_AT - pose[:3, 3]
+        off_axis = to_target - (to_target @ -pose[:3, 2]) * -pose[:3, 2]
+        assert np.linalg.norm(off_axis) < 0.11
+    ranges = lambda poses: np.linalg.norm(poses[:, :3, 3] - LOOK_AT, axis=1)  # noqa: E731
+    assert ranges(deep).std() > 5 * ranges(flat).std()
 
 
 def test_scaled_wall_is_the_same_wall_farther_away():

@@ -15,6 +15,7 @@ HORIZONTAL_FOV_DEG = 60.0
 
 RIG_HALF_EXTENT = (0.3, 0.2)  # camera centres inside a 0.6 m x 0.4 m ellipse in the z=0 plane
 LOOK_AT = np.array([0.0, -0.15, -1.4])
+GOLDEN_FRACTION = (math.sqrt(5.0) - 1.0) / 2.0
 
 
 def look_at(centre: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
@@ -32,14 +33,17 @@ def look_at(centre: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
 
 
 def make_poses(rng: np.random.Generator, num_views: int, geometry: Geometry = Geometry()) -> np.ndarray:
-    """Forward-facing rig: sunflower pattern filling an ellipse, jittered, small rotations."""
+    """Forward-facing rig: sunflower pattern filling an ellipse, jittered, small rotations; with
+    ``geometry.rig_depth`` the centres also step back along +z by a low-discrepancy fraction of
+    it (no random draws, so the other views' poses do not change)."""
     golden = math.pi * (3.0 - math.sqrt(5.0))
     poses = []
     for k in range(num_views):
         r = math.sqrt((k + 0.5) / num_views)
         a = k * golden
         rig = geometry.rig_scale
-        centre = np.array([rig * RIG_HALF_EXTENT[0] * r * math.cos(a), rig * RIG_HALF_EXTENT[1] * r * math.sin(a), 0.0])
+        back = geometry.rig_depth * ((k * GOLDEN_FRACTION) % 1.0)
+        centre = np.array([rig * RIG_HALF_EXTENT[0] * r * math.cos(a), rig * RIG_HALF_EXTENT[1] * r * math.sin(a), back])
         centre += rng.uniform(-0.02, 0.02, size=3)
         target = LOOK_AT * geometry.scene_scale + rng.uniform(-0.06, 0.06, size=3)
         roll = math.radians(rng.uniform(-2.0, 2.0))

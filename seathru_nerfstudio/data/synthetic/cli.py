@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import sys
@@ -54,6 +55,10 @@ class SynthConfig:
     """Sparse depth like structure-from-motion's: this many textured pixels per view get their
     true z-depth in ``depth/`` (nerfstudio's ``depth_file_path``, 16-bit millimetres, 0 =
     unknown); 0: none. Open water and flat texture have no SfM points, as in a real capture."""
+    rig_depth: float = 0.0
+    """Metres over which the cameras also step back from the scene along the rig's axis (0: a flat
+    forward-facing rig). The attenuation is determined by the range differences between views, so
+    this makes it easier to find (docs/benchmarks.md, session 11)."""
 
 
 def _validate(config: SynthConfig) -> None:
@@ -65,6 +70,8 @@ def _validate(config: SynthConfig) -> None:
         raise SynthError("--num-views must be at least 2 (view 0 is held out)")
     if config.supersample < 1:
         raise SynthError("--supersample must be >= 1")
+    if not (0.0 <= config.rig_depth <= 10.0):
+        raise SynthError("--rig-depth must be between 0 and 10 metres")
 
 
 def generate(config: SynthConfig) -> Path:
@@ -81,7 +88,7 @@ def generate(config: SynthConfig) -> Path:
     medium = {k: np.asarray(v, dtype=np.float64) for k, v in PRESETS[config.preset].items()}
     rng_scene = np.random.default_rng([config.seed, 1])
     rng_cams = np.random.default_rng([config.seed, 2])
-    geometry = GEOMETRY.get(config.preset, Geometry())
+    geometry = dataclasses.replace(GEOMETRY.get(config.preset, Geometry()), rig_depth=config.rig_depth)
     scene = build_scene(rng_scene, geometry)
     poses = make_poses(rng_cams, n_views, geometry)
     K = intrinsics(w, h)

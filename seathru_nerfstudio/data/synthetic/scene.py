@@ -35,6 +35,10 @@ class Geometry:
     """The same for the nearest sphere, so that a scaled scene still has something close."""
     rig_scale: float = 1.0
     """Camera rig extent scaled by this."""
+    rig_depth: float = 0.0
+    """Camera centres also spread over this many metres along the rig's axis, behind its plane
+    (a capture that swims toward or away from the scene). The attenuation is determined by how
+    much a surface point's range differs between the views that see it, which a flat rig keeps small."""
 
 
 #: ``turbid``: green coastal water, a scene 3.5x deeper (objects about 1 to 8 m away).
