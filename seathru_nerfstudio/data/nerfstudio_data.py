@@ -14,6 +14,9 @@
 * Ground truth that the frames declare (``gt_depth_file_path``, ``gt_clean_file_path``, see
   :mod:`seathru_nerfstudio.data.ground_truth`) goes into ``metadata`` as paths that follow
   ``image_filenames``, for ``LinearImageDataset`` to load.
+* On the training split, one log line says how much the SfM points' range varies between
+  views (:mod:`seathru_nerfstudio.data.range_diversity`): the only thing that determines the
+  attenuation, and small for a flat forward-facing rig.
 """
 
 from __future__ import annotations
@@ -29,8 +32,12 @@ from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from nerfstudio.utils.io import load_from_json
+from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, legacy_paths
+from seathru_nerfstudio.data.range_diversity import RangeSpread, range_spread
 
+RANGE_SPREAD_KEY = "sfm_range_spread"
+"""Metadata key (training split): :class:`RangeSpread` of the SfM points, world units."""
 SCALE_KEY = "dataparser_scale"
 """Metadata key: scene units per world unit (a float)."""
 NEAR_PERCENTILE = 0.1
@@ -64,6 +71,10 @@ class SeathruNerfstudio(Nerfstudio):
             if bounds is not None:
                 outputs.metadata["near_plane"] = bounds[0] * unit * scale
                 outputs.metadata["far_plane"] = bounds[1] * unit * scale
+            if split == "train":
+                spread = sfm_range_spread(depth_files, outputs.cameras, unit * scale, scale)
+                outputs.metadata[RANGE_SPREAD_KEY] = spread
+                CONSOLE.print(spread.summary())
         return outputs
 
     def _ground_truth(self, image_filenames: List[Path]) -> Dict[str, List[Path]]:
@@ -108,3 +119,27 @@ def sfm_bounds(depth_files, heights, widths) -> tuple[float, float] | None:
             nears.append(float(np.percentile(known, NEAR_PERCENTILE)))
             fars.append(float(np.percentile(known, 100.0 - NEAR_PERCENTILE)))
     return (min(nears), max(fars)) if nears else None
+
+
+def sfm_range_spread(depth_files, cameras, depth_to_scene: float, scene_per_world: float) -> RangeSpread:
+    """:func:`range_spread` of the sparse depth maps under nerfstudio's ``cameras`` (scene units,
+    pinhole part of the model), reported in world units."""
+    depths = [
+        get_depth_image_from_path(Path(path), int(h), int(w), scale_factor=depth_to_scale).numpy()[..., 0]
+        for path, h, w, depth_to_scale in zip(
+            depth_files,
+            cameras.height.flatten().tolist(),
+            cameras.width.flatten().tolist(),
+            [depth_to_scene] * len(depth_files),
+        )
+    ]
+    flat = lambda values: values.flatten().double().numpy()  # noqa: E731
+    in_scene = range_spread(
+        depths, cameras.camera_to_worlds.double().numpy(), flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
+    )
+    return RangeSpread(
+        num_points=in_scene.num_points,
+        mean_views=in_scene.mean_views,
+        mean_range=in_scene.mean_range / scene_per_world,
+        spread=in_scene.spread / scene_per_world,
+    )
