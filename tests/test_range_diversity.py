@@ -56,6 +56,20 @@ def test_cameras_in_one_plane_see_almost_no_spread_and_behind_counts_nothing():
     assert alone.num_points == 0 and alone.spread == 0.0
 
 
+def test_subsampling_keeps_the_statistics_of_a_uniform_layer():
+    """Points all at range 2 from view 0 and seen from 1 further back: any evenly strided subset has
+    the same per-point statistics, and no more points than asked for."""
+    depth = np.zeros((SIZE, SIZE))
+    depth[2:8, 2:8] = 2.0
+    views = [depth, np.zeros((SIZE, SIZE))]
+    cameras = [_camera_at(0.0), _camera_at(0.5)]
+    every = _spread(views, cameras)
+    few = range_spread(views, np.stack(cameras), *(np.full(2, value) for value in (F, F, C, C)), max_points_per_view=7)
+    assert every.num_points == 36 and few.num_points <= 7
+    assert few.mean_range == pytest.approx(every.mean_range, rel=0.02)
+    assert few.spread == pytest.approx(every.spread, rel=0.05)
+
+
 def test_dataparser_reports_it_in_world_units_and_a_deeper_rig_spreads_more(tmp_path: Path):
     """On seathru-synth scenes: the figure does not depend on nerfstudio's scene scaling, and
     ``--rig-depth`` raises it several times."""

@@ -52,6 +52,7 @@ def range_spread(
     fy: npt.NDArray[np.floating],
     cx: npt.NDArray[np.floating],
     cy: npt.NDArray[np.floating],
+    max_points_per_view: int = 500,
 ) -> RangeSpread:
     """Back-project every known pixel of each sparse depth map and measure its range from every
     camera whose image it falls in (pinhole, no occlusion test: SfM points are on visible texture).
@@ -61,6 +62,9 @@ def range_spread(
         camera_to_worlds: (N, 3, 4) nerfstudio/OpenGL camera-to-world (the camera looks along -z,
             +y up); pixel centres at +0.5.
         fx, fy, cx, cy: (N,) pinhole intrinsics in pixels.
+        max_points_per_view: an evenly strided subset of each view's points beyond this many (the
+            statistics are means, and a capture of hundreds of views would otherwise cost
+            views² × points at every start).
     """
     c2w = np.asarray(camera_to_worlds, dtype=np.float64)
     sizes = [np.asarray(d).shape for d in z_depths]
@@ -70,6 +74,8 @@ def range_spread(
         v, u = np.nonzero(depth > 0)
         if u.size == 0:
             continue
+        stride = -(-u.size // max_points_per_view)
+        v, u = v[::stride], u[::stride]
         z = depth[v, u]
         camera = np.stack([(u + 0.5 - cx[i]) / fx[i] * z, -(v + 0.5 - cy[i]) / fy[i] * z, -z], axis=-1)
         points = camera @ c2w[i, :, :3].T + c2w[i, :, 3]
