@@ -67,12 +67,13 @@ class SeathruNerfstudio(Nerfstudio):
         depth_files = outputs.metadata.get("depth_filenames")
         if depth_files:
             unit = float(outputs.metadata["depth_unit_scale_factor"])
-            bounds = sfm_bounds(depth_files, outputs.cameras.height, outputs.cameras.width)
+            depths = read_sparse_depths(depth_files, outputs.cameras.height, outputs.cameras.width)
+            bounds = sfm_bounds(depths)
             if bounds is not None:
                 outputs.metadata["near_plane"] = bounds[0] * unit * scale
                 outputs.metadata["far_plane"] = bounds[1] * unit * scale
             if split == "train":
-                spread = sfm_range_spread(depth_files, outputs.cameras, unit * scale, scale)
+                spread = sfm_range_spread([depth * unit for depth in depths], outputs.cameras, scale)
                 outputs.metadata[RANGE_SPREAD_KEY] = spread
                 CONSOLE.print(spread.summary())
         return outputs
@@ -107,13 +108,21 @@ class SeathruNerfstudio(Nerfstudio):
         return legacy
 
 
-def sfm_bounds(depth_files, heights, widths) -> tuple[float, float] | None:
+def read_sparse_depths(depth_files, heights, widths) -> List[np.ndarray]:
+    """The sparse depth maps, (H, W) each, in file units (z-depth, 0 = unknown), read once for
+    both the bounds and the range spread."""
+    return [
+        get_depth_image_from_path(Path(path), int(height), int(width), scale_factor=1.0).numpy()[..., 0]
+        for path, height, width in zip(depth_files, heights.flatten().tolist(), widths.flatten().tolist())
+    ]
+
+
+def sfm_bounds(depths: List[np.ndarray]) -> tuple[float, float] | None:
     """(near, far): the smallest per-image ``NEAR_PERCENTILE`` and the largest per-image
-    ``100 - NEAR_PERCENTILE`` percentile of the sparse depths, in file units (z-depth);
+    ``100 - NEAR_PERCENTILE`` percentile of the sparse depths, in their units (z-depth);
     ``None`` without any point."""
     nears, fars = [], []
-    for path, height, width in zip(depth_files, heights.flatten().tolist(), widths.flatten().tolist()):
-        depth = get_depth_image_from_path(Path(path), int(height), int(width), scale_factor=1.0).numpy()
+    for depth in depths:
         known = depth[depth > 0]
         if known.size:
             nears.append(float(np.percentile(known, NEAR_PERCENTILE)))
@@ -121,25 +130,13 @@ def sfm_bounds(depth_files, heights, widths) -> tuple[float, float] | None:
     return (min(nears), max(fars)) if nears else None
 
 
-def sfm_range_spread(depth_files, cameras, depth_to_scene: float, scene_per_world: float) -> RangeSpread:
-    """:func:`range_spread` of the sparse depth maps under nerfstudio's ``cameras`` (scene units,
-    pinhole part of the model), reported in world units."""
-    depths = [
-        get_depth_image_from_path(Path(path), int(h), int(w), scale_factor=depth_to_scale).numpy()[..., 0]
-        for path, h, w, depth_to_scale in zip(
-            depth_files,
-            cameras.height.flatten().tolist(),
-            cameras.width.flatten().tolist(),
-            [depth_to_scene] * len(depth_files),
-        )
-    ]
+def sfm_range_spread(world_depths: List[np.ndarray], cameras, scene_per_world: float) -> RangeSpread:
+    """:func:`range_spread` of the sparse depth maps (world units) under nerfstudio's ``cameras``
+    (scene units; the pinhole part of the model), in world units: the poses are scaled back to
+    world units, so no depth is converted twice."""
     flat = lambda values: values.flatten().double().numpy()  # noqa: E731
-    in_scene = range_spread(
-        depths, cameras.camera_to_worlds.double().numpy(), flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
-    )
-    return RangeSpread(
-        num_points=in_scene.num_points,
-        mean_views=in_scene.mean_views,
-        mean_range=in_scene.mean_range / scene_per_world,
-        spread=in_scene.spread / scene_per_world,
+    camera_to_worlds = cameras.camera_to_worlds.double().numpy().copy()
+    camera_to_worlds[:, :, 3] /= scene_per_world
+    return range_spread(
+        world_depths, camera_to_worlds, flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
     )
