@@ -62,3 +62,26 @@ def backscatter_envelope_loss(
     pinball = torch.maximum(quantile * residual, (quantile - 1.0) * residual)
     weight = known.to(pinball.dtype).expand_as(pinball)
     return (pinball * weight).sum() / torch.clamp(weight.sum(), min=1.0)
+
+
+def depth_kernel_variance(
+    starts: Float[Tensor, "*batch S 1"],
+    ends: Float[Tensor, "*batch S 1"],
+    termination_range: Float[Tensor, "*batch 1"],
+    sigma_floor: float,
+) -> Float[Tensor, "*batch 1 1"]:
+    """Variance of the DS-NeRF depth kernel per ray: ``max(sigma_floor, h)^2``, where ``h`` is the
+    length of the sample interval whose midpoint is nearest the known range (same units as
+    ``starts``; detached).
+
+    The DS-NeRF loss weighs ``-log w_i`` by ``exp(-(t_i - d)^2 / 2 sigma^2)`` at the sample
+    midpoints ``t_i``. A kernel much narrower than the spacing falls between samples and gives
+    no gradient: on the turbid demo (objects 1-8 m, samples about 0.5 m apart at 5 m before the
+    proposal samplers learn) a fixed 2 cm left the geometry unformed. With ``sigma >= h`` the
+    nearest midpoint gets at least ``e^{-1/8}`` of the kernel; where the samples are denser
+    than ``sigma_floor`` the kernel is the floor, as before.
+    """
+    midpoints = 0.5 * (starts + ends)
+    nearest = torch.argmin((midpoints - termination_range[..., None, :]).abs(), dim=-2, keepdim=True)
+    spacing = torch.gather(ends - starts, -2, nearest)
+    return torch.clamp(spacing.detach(), min=sigma_floor) ** 2

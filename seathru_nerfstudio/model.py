@@ -26,7 +26,12 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio import diagnostics, metrics, viewer
 from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
 from seathru_nerfstudio.lazy_outputs import LazyOutputs
-from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
+from seathru_nerfstudio.losses import (
+    backscatter_envelope_loss,
+    binary_transmittance_loss,
+    depth_kernel_variance,
+    rawnerf_loss,
+)
 from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_field import (
     MEDIUM_MODELS,
@@ -86,7 +91,13 @@ class SeathruModelConfig(NerfactoModelConfig):
     depths, 0 where unknown). ``ground-truth``: diagnostic, the synthetic scenes' true range
     (dense), and zero object opacity where the truth is open water."""
     depth_sigma: float = 0.02
-    """Spread of the depth loss, in world units (metres)."""
+    """Spread of the depth loss, in world units (metres); with ``depth_sigma_follows_sampling``
+    its floor."""
+    depth_sigma_follows_sampling: bool = True
+    """Widen the depth loss's kernel on each ray to the length of the sample interval at the
+    known depth where that is longer than ``depth_sigma``
+    (:func:`~seathru_nerfstudio.losses.depth_kernel_variance`): a kernel narrower than the
+    sampling falls between samples and trains nothing. Off: ``depth_sigma`` everywhere."""
     diagnostics_every: int = 100
     """Print one line of decomposition diagnostics every this many steps; 0: never."""
     medium_model: Literal["auto", "none", "fog", "uniform", "seathru", "basic"] = "auto"
@@ -771,7 +782,7 @@ class SeathruModel(NerfactoModel):
             termination_depth=torch.where(hit, truth, torch.zeros_like(truth)),
             predicted_depth=outputs["expected_depth"],
             # nerfstudio's DS-NeRF loss divides by 2 * sigma: it takes the variance.
-            sigma=torch.tensor((self.config.depth_sigma * self.world_scale) ** 2, device=self.device),
+            sigma=self._depth_kernel_variance(outputs, truth, is_euclidean),
             directions_norm=outputs.get("directions_norm", torch.ones_like(truth)),
             is_euclidean=is_euclidean,
             depth_loss_type=DepthLossType.DS_NERF,
@@ -785,6 +796,16 @@ class SeathruModel(NerfactoModel):
         # Open water: nothing to hit, so no object opacity.
         open_water = (~hit).float()
         return loss + torch.sum(outputs["accumulation"] * open_water) / max(1.0, float(open_water.numel()))
+
+    def _depth_kernel_variance(self, outputs, truth: torch.Tensor, is_euclidean: bool) -> torch.Tensor:
+        """The depth loss's variance in scene units squared: one value, or one per ray."""
+        sigma_floor = self.config.depth_sigma * self.world_scale
+        if not self.config.depth_sigma_follows_sampling:
+            return torch.tensor(sigma_floor**2, device=self.device)
+        frustums = outputs["ray_samples_list"][-1].frustums
+        norm = 1.0 if is_euclidean else outputs.get("directions_norm", torch.ones_like(truth))
+        ray_range = torch.where(torch.isfinite(truth), truth, torch.zeros_like(truth)) * norm
+        return depth_kernel_variance(frustums.starts, frustums.ends, ray_range, sigma_floor)
 
     def get_image_metrics_and_images(
         self, outputs: Dict[str, torch.Tensor], batch: Dict[str, torch.Tensor]

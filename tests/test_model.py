@@ -371,6 +371,29 @@ def test_depth_loss_pulls_the_weights_to_the_known_depth_and_empties_open_water(
         m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
 
 
+def test_depth_kernel_follows_the_samples_unless_switched_off():
+    """Per ray, the kernel is the floor or the length of the sample interval at the known depth."""
+    from seathru_nerfstudio.losses import depth_kernel_variance
+
+    bundle = rays(8, seed=5)
+    bundle.metadata["directions_norm"] = torch.full((8, 1), 1.25)
+    z_depth = torch.full((8, 1), 0.6)
+    for follows in (True, False):
+        m = tiny_model(depth_loss_mult=1.0, depth_sigma=0.05, depth_sigma_follows_sampling=follows)
+        m.train()
+        out = m(bundle)
+        variance = m._depth_kernel_variance(out, z_depth, is_euclidean=False)
+        floor = (0.05 * m.world_scale) ** 2
+        if not follows:
+            torch.testing.assert_close(variance, torch.tensor(floor))
+            continue
+        frustums = out["ray_samples_list"][-1].frustums
+        ranges = 0.6 * torch.full((8, 1), 1.25)  # z-depth times the direction's norm
+        expected = depth_kernel_variance(frustums.starts, frustums.ends, ranges, 0.05 * m.world_scale)
+        torch.testing.assert_close(variance, expected)
+        assert variance.shape == (8, 1, 1) and (variance >= floor).all()
+
+
 def test_training_metrics_carry_the_decomposition_diagnostics(model):
     from seathru_nerfstudio import diagnostics
 
