@@ -32,7 +32,7 @@ from seathru_nerfstudio.losses import (
     depth_kernel_variance,
     rawnerf_loss,
 )
-from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
+from seathru_nerfstudio.data.nerfstudio_data import RANGE_SPREAD_KEY, SCALE_KEY
 from seathru_nerfstudio.medium_field import (
     MEDIUM_MODELS,
     FixedMedium,
@@ -67,7 +67,17 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_sh_levels: int = 4
     """Spherical-harmonic levels of the medium's direction encoding."""
     medium_init_density: float = 0.5
-    """Initial sigma_attn and sigma_bs, per scene unit."""
+    """Initial sigma_attn and sigma_bs, per scene unit, where ``medium_init_optical_depth`` does
+    not apply (a dataset without SfM depths, or 0 there)."""
+    medium_init_optical_depth: float = 3.0
+    """Initial sigma_attn and sigma_bs such that the SfM points' mean range (the dataparser's
+    ``sfm_range_spread``) is this many attenuation lengths away, whatever the rig's width. A
+    scene unit follows the rig (nerfstudio scales the poses), not the distance to the scene, so
+    ``medium_init_density`` started turbid water (objects 3.4x farther than water's, rig 1.5x
+    wider) at an optical depth of 6.5, where the objects' light and with it the attenuation's
+    gradient (``-z J e^{-beta z}``) vanish: green beta_D stayed 2.7x the truth. 3.0 is the
+    optical depth ``medium_init_density`` gave the water and fog demos (1.88 /m at 1.58 m).
+    0: off."""
     medium_scope: Literal["ray", "scene"] = "scene"
     """``ray``: the paper's MLP of the ray direction (water that changes with the viewing
     direction). ``scene``: one homogeneous water body, nine learned constants."""
@@ -301,14 +311,21 @@ class SeathruModel(NerfactoModel):
                 sigma_bs=[b / self.world_scale for b in truth["beta_B"]],
             )
         if self.config.medium_scope == "scene":
-            return SceneMedium(init_density=self.config.medium_init_density)
+            return SceneMedium(init_density=self._initial_medium_density())
         return MediumField(
             num_layers=self.config.medium_num_layers,
             hidden_dim=self.config.medium_hidden_dim,
             sh_levels=self.config.medium_sh_levels,
-            init_density=self.config.medium_init_density,
+            init_density=self._initial_medium_density(),
             implementation=self.config.implementation,
         )
+
+    def _initial_medium_density(self) -> float:
+        """The learned medium's starting densities, per scene unit (``medium_init_optical_depth``)."""
+        spread = (self.kwargs.get("metadata") or {}).get(RANGE_SPREAD_KEY)
+        if self.config.medium_init_optical_depth > 0 and spread is not None and spread.mean_range > 0:
+            return self.config.medium_init_optical_depth / (spread.mean_range * self.world_scale)
+        return self.config.medium_init_density
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
         # Checkpoints from before the medium model was recorded: the model of the config.

@@ -394,6 +394,29 @@ def test_depth_kernel_follows_the_samples_unless_switched_off():
         assert variance.shape == (8, 1, 1) and (variance >= floor).all()
 
 
+def test_the_medium_starts_at_an_optical_depth_of_the_sfm_range():
+    """Densities per scene unit = optical depth / (mean SfM range in metres * scene units per metre)."""
+    from seathru_nerfstudio.data.nerfstudio_data import RANGE_SPREAD_KEY, SCALE_KEY
+    from seathru_nerfstudio.data.range_diversity import RangeSpread
+
+    spread = RangeSpread(num_points=10, mean_views=3.0, mean_range=4.0, spread=0.1)
+    directions = torch.nn.functional.normalize(torch.randn(5, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    for optical_depth in (3.0, 0.7):
+        m = tiny_model(metadata={SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}, medium_init_optical_depth=optical_depth)
+        medium = m.medium_field(directions)
+        for sigma in (medium.sigma_attn, medium.sigma_bs):  # per scene unit; the range is 4 m = 8 units
+            torch.testing.assert_close(sigma * 8.0, torch.full_like(sigma, optical_depth))
+        metadata = {SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}
+        ray = tiny_model(metadata=metadata, medium_init_optical_depth=optical_depth, medium_scope="ray")
+        bias = torch.nn.functional.softplus(ray.medium_field.density_bias)
+        torch.testing.assert_close(bias * 8.0, torch.full_like(bias, optical_depth))
+    # Without SfM depths, or switched off: medium_init_density per scene unit.
+    for metadata, optical_depth in (({SCALE_KEY: 2.0}, 3.0), ({SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}, 0.0)):
+        m = tiny_model(metadata=metadata, medium_init_optical_depth=optical_depth, medium_init_density=0.3)
+        sigma = m.medium_field(directions).sigma_attn
+        torch.testing.assert_close(sigma, torch.full_like(sigma, 0.3))
+
+
 def test_training_metrics_carry_the_decomposition_diagnostics(model):
     from seathru_nerfstudio import diagnostics
 

@@ -80,9 +80,9 @@ def tiny_config(scene: Path, output_dir: Path, iterations: int, **trainer_fields
     return config
 
 
-def tiny_model(**overrides):
+def tiny_model(metadata=None, **overrides):
     """An untrained ``SeathruModel`` small enough to render a few hundred rays in milliseconds;
-    ``overrides`` are ``SeathruModelConfig`` fields."""
+    ``overrides`` are ``SeathruModelConfig`` fields, ``metadata`` the dataparser's."""
     import torch
     from nerfstudio.data.scene_box import SceneBox
 
@@ -101,7 +101,8 @@ def tiny_model(**overrides):
         ],
         **overrides,
     )
-    return config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)
+    scene_box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
+    return config.setup(scene_box=scene_box, num_train_data=4, metadata=metadata or {})
 
 
 def spy_calls(module) -> list:
