@@ -175,7 +175,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     attenuation starts equal to backscatter. Measured with the geometry stage (docs/benchmarks.md,
     session 9): on the water demo (seeds 42 and 7) clean 20.3 and 20.8 dB against 19.0 and the
     dim red channel's beta_B within 6% against 54-66% high; on fog (one run) clean 14.1 against
-    16.4 dB and the densities further off. Mixed, so off by default. 0: off."""
+    16.4 dB and the densities further off. Session 12, with ``auto``: it starts the attenuation
+    equal to the backscatter, so ``auto`` chose ``uniform`` on water (in-medium 37.1 against 43.6 dB)
+    and on turbid. Off by default; with it, force ``medium_model`` unless the water is uniform. 0: off."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour
