@@ -795,14 +795,16 @@ class SeathruModel(NerfactoModel):
             truth = batch["depth_image"].to(self.device)  # z-depth, scene units; 0 = unknown
             is_euclidean = False
         hit = torch.isfinite(truth)
+        termination_depth = torch.where(hit, truth, torch.zeros_like(truth))
+        directions_norm = outputs.get("directions_norm", torch.ones_like(truth))
         loss = depth_loss(
             weights=outputs["weights_list"][-1],
             ray_samples=outputs["ray_samples_list"][-1],
-            termination_depth=torch.where(hit, truth, torch.zeros_like(truth)),
+            termination_depth=termination_depth,
             predicted_depth=outputs["expected_depth"],
             # nerfstudio's DS-NeRF loss divides by 2 * sigma: it takes the variance.
-            sigma=self._depth_kernel_variance(outputs, truth, is_euclidean),
-            directions_norm=outputs.get("directions_norm", torch.ones_like(truth)),
+            sigma=self._depth_kernel_variance(outputs, termination_depth, directions_norm, is_euclidean),
+            directions_norm=directions_norm,
             is_euclidean=is_euclidean,
             depth_loss_type=DepthLossType.DS_NERF,
         )
@@ -816,14 +818,16 @@ class SeathruModel(NerfactoModel):
         open_water = (~hit).float()
         return loss + torch.sum(outputs["accumulation"] * open_water) / max(1.0, float(open_water.numel()))
 
-    def _depth_kernel_variance(self, outputs, truth: torch.Tensor, is_euclidean: bool) -> torch.Tensor:
-        """The depth loss's variance in scene units squared: one value, or one per ray."""
+    def _depth_kernel_variance(
+        self, outputs, termination_depth: torch.Tensor, directions_norm: torch.Tensor, is_euclidean: bool
+    ) -> torch.Tensor:
+        """The depth loss's variance in scene units squared: one value, or one per ray.
+        ``termination_depth`` as the depth loss takes it (finite; z-depth unless ``is_euclidean``)."""
         sigma_floor = self.config.depth_sigma * self.world_scale
         if not self.config.depth_sigma_follows_sampling:
             return torch.tensor(sigma_floor**2, device=self.device)
         frustums = outputs["ray_samples_list"][-1].frustums
-        norm = 1.0 if is_euclidean else outputs.get("directions_norm", torch.ones_like(truth))
-        ray_range = torch.where(torch.isfinite(truth), truth, torch.zeros_like(truth)) * norm
+        ray_range = termination_depth if is_euclidean else termination_depth * directions_norm
         return depth_kernel_variance(frustums.starts, frustums.ends, ray_range, sigma_floor)
 
     def get_image_metrics_and_images(

@@ -382,7 +382,7 @@ def test_depth_kernel_follows_the_samples_unless_switched_off():
         m = tiny_model(depth_loss_mult=1.0, depth_sigma=0.05, depth_sigma_follows_sampling=follows)
         m.train()
         out = m(bundle)
-        variance = m._depth_kernel_variance(out, z_depth, is_euclidean=False)
+        variance = m._depth_kernel_variance(out, z_depth, bundle.metadata["directions_norm"], is_euclidean=False)
         floor = (0.05 * m.world_scale) ** 2
         if not follows:
             torch.testing.assert_close(variance, torch.tensor(floor))
