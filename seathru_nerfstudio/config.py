@@ -20,6 +20,7 @@ from nerfstudio.plugins.types import MethodSpecification
 from seathru_nerfstudio import compat
 from seathru_nerfstudio.data.linear_images import LinearImageDataset
 from seathru_nerfstudio.data.nerfstudio_data import SeathruNerfstudioDataParserConfig
+from seathru_nerfstudio.data.seeded_sampler import SeededPixelSamplerConfig  # repeatable runs
 from seathru_nerfstudio.model import SeathruModelConfig
 from seathru_nerfstudio.pipeline import SeathruPipelineConfig  # evaluations without the viewer's water controls
 from seathru_nerfstudio.training import SeathruTrainerConfig  # non-finite guard, crash-safe checkpoints
@@ -93,6 +94,7 @@ def method_config(
                 dataparser=SeathruNerfstudioDataParserConfig(),
                 train_num_rays_per_batch=rays,
                 eval_num_rays_per_batch=rays,
+                pixel_sampler=SeededPixelSamplerConfig(),
             ),
             model=SeathruModelConfig(
                 eval_num_rays_per_chunk=chunk,
