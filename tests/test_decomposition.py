@@ -2,10 +2,14 @@
 
 One short ``seathru-bench`` run of ``seathru-nerf-lite`` with its default settings (the
 veiling-light and geometry stage shortened) on a 48x36 synthetic water scene, evaluated just after
-the object field starts and at the end. Loose bounds that fit CI's time:
-the clean image's error falls, the surfaces are at their depth, the veiling light moves toward
-the truth, open water stays empty, and the medium's densities stay in a physical range. The full-size figures are in
+the object field starts and at the end. Loose bounds that fit CI's time: the clean image's error
+falls, the surfaces are at their depth, the veiling light moves toward the truth, open water stays
+empty, and the medium's densities stay in a physical range. The full-size figures are in
 docs/benchmarks.md.
+
+It runs on one torch thread, where a run with a given seed repeats exactly (the rays follow the
+seed: ``data/seeded_sampler.py``); on two threads the order of floating-point sums varies, and the
+losses of two runs of one seed part in the 8th digit after about 20 steps.
 """
 
 from __future__ import annotations
@@ -29,7 +33,7 @@ def run(tmp_path_factory):
         "--scenes", "water", "--methods", f"seathru-nerf-lite:medium_first_steps={FIRST_STAGE}",
         "--output-dir", str(out), "--budget-iterations", str(ITERATIONS), "--num-evals", "2",
         "--first-eval-fraction", str((FIRST_STAGE + 10) / ITERATIONS),
-        "--width", "48", "--height", "36", "--num-views", "10",
+        "--width", "48", "--height", "36", "--num-views", "10", "--threads", "1",
     ]  # fmt: skip
     proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
     assert proc.returncode == 0, proc.stderr[-3000:]
@@ -42,8 +46,10 @@ def run(tmp_path_factory):
 @pytest.mark.slow
 def test_clean_error_falls_and_the_surfaces_are_at_their_depth(run):
     """The clean image improves once the object colour learns, and the surfaces move to their
-    depth. (On this tiny scene the rise is small and varies run to run: +0.9 dB in one suite run,
-    13.0 -> 14.0 dB; hence a margin of 0.3 dB. The full-size figures are in docs/benchmarks.md.)"""
+    depth. On this tiny scene the rise is small and depends on the seed: +0.78, +1.16 and +0.45 dB
+    for seeds 42, 7 and 3 on one thread (session 13); before the rays followed the seed, runs of
+    one seed ranged from +0.1 to +1.7 dB and this test failed about one suite in five. The margin
+    stays 0.3 dB; the full-size figures are in docs/benchmarks.md."""
     early, late = run
     assert late["step"] == ITERATIONS
     assert late["metrics"]["clean_psnr"] > early["metrics"]["clean_psnr"] + 0.3, (early["metrics"], late["metrics"])
