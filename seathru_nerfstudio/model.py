@@ -5,6 +5,7 @@ plus a per-ray medium field and the scattering renderer of :mod:`seathru_nerfstu
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Literal, Optional, Tuple, Type
@@ -326,7 +327,9 @@ class SeathruModel(NerfactoModel):
         """The learned medium's starting densities, per scene unit (``medium_init_optical_depth``)."""
         spread = (self.kwargs.get("metadata") or {}).get(RANGE_SPREAD_KEY)
         if self.config.medium_init_optical_depth > 0 and spread is not None and spread.mean_range > 0:
-            return self.config.medium_init_optical_depth / (spread.mean_range * self.world_scale)
+            density = self.config.medium_init_optical_depth / (spread.mean_range * self.world_scale)
+            if math.isfinite(density):  # a degenerate (subnormal) mean range would give inf
+                return density
         return self.config.medium_init_density
 
     def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:

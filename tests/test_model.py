@@ -406,12 +406,16 @@ def test_the_medium_starts_at_an_optical_depth_of_the_sfm_range():
         medium = m.medium_field(directions)
         for sigma in (medium.sigma_attn, medium.sigma_bs):  # per scene unit; the range is 4 m = 8 units
             torch.testing.assert_close(sigma * 8.0, torch.full_like(sigma, optical_depth))
-        metadata = {SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}
-        ray = tiny_model(metadata=metadata, medium_init_optical_depth=optical_depth, medium_scope="ray")
+        ray = tiny_model(metadata={SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}, medium_init_optical_depth=optical_depth, medium_scope="ray")
         bias = torch.nn.functional.softplus(ray.medium_field.density_bias)
         torch.testing.assert_close(bias * 8.0, torch.full_like(bias, optical_depth))
-    # Without SfM depths, or switched off: medium_init_density per scene unit.
-    for metadata, optical_depth in (({SCALE_KEY: 2.0}, 3.0), ({SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}, 0.0)):
+    # Without SfM depths, switched off, or a degenerate range whose density would be inf: medium_init_density.
+    degenerate = RangeSpread(num_points=10, mean_views=3.0, mean_range=1e-310, spread=0.0)
+    for metadata, optical_depth in (
+        ({SCALE_KEY: 2.0}, 3.0),
+        ({SCALE_KEY: 2.0, RANGE_SPREAD_KEY: spread}, 0.0),
+        ({SCALE_KEY: 2.0, RANGE_SPREAD_KEY: degenerate}, 3.0),
+    ):
         m = tiny_model(metadata=metadata, medium_init_optical_depth=optical_depth, medium_init_density=0.3)
         sigma = m.medium_field(directions).sigma_attn
         torch.testing.assert_close(sigma, torch.full_like(sigma, 0.3))
