@@ -12,16 +12,23 @@ allows (:func:`choose_medium_model`):
 2. ``fog`` if the veiling light is grey and all six densities agree. A wavelength-independent
    medium scatters the illumination's own colour back, so its veiling light is grey on
    white-balanced images; water absorbs red first and turns it blue-green.
-3. ``uniform`` if attenuation and backscatter agree per channel.
+3. ``uniform`` if attenuation and backscatter agree per channel: where the scene's far range
+   is known (the SfM bounds), if tying them changes the light from the farthest surfaces by
+   less than :attr:`ChoiceRule.tie_optical_depth` in optical depth; else, if their ratio is
+   close to 1. A ratio alone is blind to distance: turbid water with attenuation 1.3x its
+   backscatter (the ``turbid`` demo's truth, ratio 1.29) ties within 1.3x, yet over its
+   8 m the tie dims the far surfaces' light by e^{-1.1}, a factor 3.
 4. ``seathru`` otherwise.
 
-The thresholds are ratios (largest over smallest), so they do not depend on units.
+The thresholds are ratios (largest over smallest) or optical depths (density times range),
+so they do not depend on units.
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
-from typing import Sequence, Tuple
+from typing import Optional, Sequence, Tuple
 
 RGB = Tuple[float, float, float]
 
@@ -38,6 +45,8 @@ class MediumEvidence:
     """Backscatter density per channel, 1/world unit."""
     B_inf: RGB
     """Veiling light per channel, linear."""
+    far_range: Optional[float] = None
+    """Range of the farthest surfaces (the SfM far bound), world units; ``None``: unknown."""
 
 
 @dataclass(frozen=True)
@@ -51,7 +60,12 @@ class ChoiceRule:
     fog_density_ratio: float = 1.5
     """``fog`` needs all six densities within this ratio of each other."""
     tie_ratio: float = 1.3
-    """``uniform`` needs attenuation and backscatter within this ratio, channel by channel."""
+    """Without a far range, ``uniform`` needs attenuation and backscatter within this ratio,
+    channel by channel."""
+    tie_optical_depth: float = 0.1
+    """With a far range, ``uniform`` needs ``|beta_D - beta_B| * far_range`` at most this in
+    every channel: tying them then changes the farthest surfaces' light by at most
+    ``e^0.1 - 1``, about 10%."""
 
 
 def _ratio(values: Sequence[float]) -> float:
@@ -67,13 +81,18 @@ def choose_medium_model(evidence: MediumEvidence, rule: ChoiceRule = ChoiceRule(
         return "none", f"backscatter share {share:.3f} < {rule.none_below_share:g}"
     veil = _ratio(evidence.B_inf)
     densities = _ratio((*evidence.beta_D, *evidence.beta_B))
-    ties = max(_ratio((d, b)) for d, b in zip(evidence.beta_D, evidence.beta_B))
-    facts = (
-        f"backscatter share {share:.3f}, veiling light ratio {veil:.2f}, density ratio {densities:.2f}, "
-        f"attenuation/backscatter ratio {ties:.2f}"
-    )
+    facts = f"backscatter share {share:.3f}, veiling light ratio {veil:.2f}, density ratio {densities:.2f}"
     if veil <= rule.grey_veil_ratio and densities <= rule.fog_density_ratio:
         return "fog", f"{facts}: grey veil (<= {rule.grey_veil_ratio:g}), densities agree (<= {rule.fog_density_ratio:g})"
-    if ties <= rule.tie_ratio:
-        return "uniform", f"{facts}: attenuation ties to backscatter (<= {rule.tie_ratio:g})"
+    far = evidence.far_range
+    if far is not None and math.isfinite(far) and far > 0:
+        gap = max(abs(d - b) for d, b in zip(evidence.beta_D, evidence.beta_B)) * far
+        facts += f", attenuation-backscatter gap {gap:.2f} in optical depth at the far range {far:.3g}"
+        if gap <= rule.tie_optical_depth:
+            return "uniform", f"{facts}: attenuation ties to backscatter (<= {rule.tie_optical_depth:g})"
+    else:
+        ties = max(_ratio((d, b)) for d, b in zip(evidence.beta_D, evidence.beta_B))
+        facts += f", attenuation/backscatter ratio {ties:.2f}"
+        if ties <= rule.tie_ratio:
+            return "uniform", f"{facts}: attenuation ties to backscatter (<= {rule.tie_ratio:g})"
     return "seathru", f"{facts}: no simpler model fits"

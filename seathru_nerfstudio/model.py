@@ -285,6 +285,11 @@ class SeathruModel(NerfactoModel):
             self.first_stage_object = self._object_state()
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
+        self.far_range: Optional[float] = (
+            float(metadata["far_plane"]) / self.world_scale if "far_plane" in metadata else None
+        )
+        """The scene's far bound in world units (``None``: no SfM bounds); ``auto`` weighs the
+        medium's attenuation-backscatter gap over it."""
         if "near_plane" in metadata:
             # The scene's own bounds (seathru-data: poses_bounds.npy; nerfstudio-data: the SfM
             # depths), with margins; the renderer adds the water in front of the near and behind
@@ -508,6 +513,7 @@ class SeathruModel(NerfactoModel):
             beta_D=tuple(values[1:4]),
             beta_B=tuple(values[4:7]),
             B_inf=tuple(values[7:10]),
+            far_range=self.far_range,
         )
 
     def _print_diagnostics(self, step: int) -> None:

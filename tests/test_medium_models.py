@@ -12,6 +12,7 @@ from nerfstudio.engine.optimizers import AdamOptimizerConfig, Optimizers
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 
 from seathru_nerfstudio import metrics
+from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumOutputs, tie
 from seathru_nerfstudio.model import UNDECIDED
@@ -168,8 +169,8 @@ def test_uniform_medium_renders_as_seathru_with_equal_densities():
     torch.testing.assert_close(out.rgb, expected, rtol=1e-5, atol=1e-6)
 
 
-def evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.07, 0.2, 0.39)):
-    return MediumEvidence(backscatter_share=share, beta_D=beta_D, beta_B=beta_B, B_inf=B_inf)
+def evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.07, 0.2, 0.39), far_range=None):
+    return MediumEvidence(backscatter_share=share, beta_D=beta_D, beta_B=beta_B, B_inf=B_inf, far_range=far_range)
 
 
 @pytest.mark.parametrize(
@@ -200,6 +201,29 @@ def test_decision_rule_thresholds_are_the_rules():
     grey = evidence(beta_D=(1.0, 1.1, 1.2), beta_B=(1.0, 1.1, 1.2), B_inf=(0.5, 0.55, 0.6))
     assert choose_medium_model(grey)[0] == "fog"
     assert choose_medium_model(grey, ChoiceRule(grey_veil_ratio=1.1))[0] == "uniform"
+
+
+def test_a_known_far_range_ties_by_optical_depth_not_by_ratio():
+    """The turbid demo's true medium (attenuation 1.29x the backscatter in red): the ratio rule
+    ties it, but over 8 m the tie dims the far surfaces by e^{-(0.62-0.48)*8} = e^{-1.12}."""
+    turbid = evidence(beta_D=(0.62, 0.38, 0.46), beta_B=(0.48, 0.32, 0.38), B_inf=(0.04, 0.26, 0.18))
+    assert choose_medium_model(turbid)[0] == "uniform"  # no far range: the ratio rule
+    far = dataclasses.replace(turbid, far_range=8.0)
+    chosen, reason = choose_medium_model(far)
+    assert chosen == "seathru" and "1.12" in reason, reason
+    # The same gap over a short range is within the tolerance: 0.14 /m * 0.7 m = 0.098 <= 0.1.
+    assert choose_medium_model(dataclasses.replace(turbid, far_range=0.7))[0] == "uniform"
+    assert choose_medium_model(dataclasses.replace(turbid, far_range=0.75))[0] == "seathru"  # 0.105
+    assert choose_medium_model(dataclasses.replace(turbid, far_range=0.75), ChoiceRule(tie_optical_depth=0.2))[0] == "uniform"
+    # A ratio far from 1 at tiny densities is still a tie when the light hardly changes.
+    faint = evidence(beta_D=(0.02, 0.03, 0.04), beta_B=(0.01, 0.01, 0.01), far_range=2.0)
+    assert choose_medium_model(faint)[0] == "uniform"
+    # Fog is decided before the tie, as without a far range.
+    fog = evidence(beta_D=(1.2,) * 3, beta_B=(1.2,) * 3, B_inf=(0.6,) * 3, far_range=8.0)
+    assert choose_medium_model(fog)[0] == "fog"
+    # A far range that says nothing (0, inf, nan) falls back to the ratio rule.
+    for unknown in (0.0, float("inf"), float("nan")):
+        assert choose_medium_model(dataclasses.replace(turbid, far_range=unknown))[0] == "uniform"
 
 
 def feed_evidence(model, values: MediumEvidence, steps: range) -> None:
@@ -253,6 +277,19 @@ def test_auto_keeping_seathru_changes_nothing():
     model._decide_medium_model(39)
     model.train_step = 41
     assert model.medium_model == "seathru" and model.medium_blend == 1.0
+
+
+@pytest.mark.parametrize("far_scene_units, expected", [(0.5 * 0.25, "uniform"), (8.0 * 0.25, "seathru")])
+def test_auto_weighs_the_tie_over_the_dataparser_far_bound_in_world_units(far_scene_units, expected):
+    """Scale 0.25 scene units per metre: a far bound of 2 scene units is 8 m, where the turbid
+    truth's gap (0.14 /m) is 1.12 in optical depth; at 0.5 m it is 0.07, a tie."""
+    metadata = {SCALE_KEY: 0.25, "near_plane": 0.05, "far_plane": far_scene_units}
+    model = tiny_model(metadata, medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    assert model.far_range == pytest.approx(far_scene_units / 0.25)
+    turbid = evidence(beta_D=(0.62, 0.38, 0.46), beta_B=(0.48, 0.32, 0.38), B_inf=(0.04, 0.26, 0.18))
+    feed_evidence(model, turbid, range(20, 40))
+    model._decide_medium_model(39)
+    assert model.medium_model == expected
 
 
 def test_auto_settings_are_checked():
