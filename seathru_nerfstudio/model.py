@@ -204,6 +204,13 @@ class SeathruModelConfig(NerfactoModelConfig):
     binary_prior_mult: float = 1e-3
     """Weight of the binary prior on the object transmittance (lambda; the paper's 1e-4 left the
     open water filled and the surfaces half transparent on the water demo, see docs/benchmarks.md)."""
+    binary_prior_early_mult: Optional[float] = None
+    """If set, the prior's weight before ``binary_prior_early_steps`` (then ``binary_prior_mult``):
+    a weak prior while the SfM depth loss forms the geometry, so that faint far surfaces are not
+    pushed to empty before they are opaque enough for the prior to push them the other way.
+    ``None``: ``binary_prior_mult`` from the start."""
+    binary_prior_early_steps: int = 500
+    """Training steps that use ``binary_prior_early_mult``."""
     binary_prior_scale: float = 0.1
     """Scale of the two Laplacians of the binary prior."""
     binary_prior_empty_weight: float = 6.0
@@ -367,6 +374,14 @@ class SeathruModel(NerfactoModel):
         if warmup <= 0 or self.train_step is None:
             return 1.0
         return min(1.0, self.train_step / warmup)
+
+    @property
+    def binary_prior_weight(self) -> float:
+        """The binary prior's weight at this training step (``binary_prior_mult`` outside training)."""
+        early = self.config.binary_prior_early_mult
+        if early is not None and self.train_step is not None and self.train_step < self.config.binary_prior_early_steps:
+            return early
+        return self.config.binary_prior_mult
 
     @property
     def densities_held(self) -> bool:
@@ -752,8 +767,9 @@ class SeathruModel(NerfactoModel):
             image = batch["image"][..., :3].to(self.device)
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=self.config.rawnerf_eps)
         no_geometry_yet = self.object_frozen and "depth_image" not in batch and self.config.depth_source == "sfm"
-        if self.training and self.config.binary_prior_mult > 0 and not nerfacto_objective and not no_geometry_yet:
-            loss_dict["binary_prior_loss"] = self.config.binary_prior_mult * binary_transmittance_loss(
+        prior_weight = self.binary_prior_weight
+        if self.training and prior_weight > 0 and not nerfacto_objective and not no_geometry_yet:
+            loss_dict["binary_prior_loss"] = prior_weight * binary_transmittance_loss(
                 outputs["transmittance"],
                 scale=self.config.binary_prior_scale,
                 empty_weight=self.config.binary_prior_empty_weight,
