@@ -122,7 +122,8 @@ def view_metrics(
       ones as the eye does, so a loss that favours one kind of pixel cannot win on one metric unseen;
     * with ``gt_depth`` (range, same units as ``depth``; ``inf`` for open water): ``depth_abs_rel``,
       its far third ``depth_abs_rel_far``, the median ``depth_abs_rel_median`` (robust to the few
-      empty rays whose depth is the far plane), and the mean object opacity on object rays
+      empty rays whose depth is the far plane), the signed bias ``depth_log_ratio_median`` (the
+      median of ``log(depth / true)``: < 0 when surfaces sit too near), and the mean object opacity on object rays
       (``object_accumulation``) and on open water (``open_water_accumulation``, which must stay 0);
     * with ``gt_clean`` and a ``clean`` output: ``clean_psnr``, ``clean_ssim``, on object pixels only
       when ``gt_depth`` says where open water is (it has no clean colour);
@@ -149,6 +150,10 @@ def view_metrics(
         if bool(object_mask.any()):
             rel = (depth[object_mask] - gt_depth[object_mask]).abs() / gt_depth[object_mask]
             result["depth_abs_rel_median"] = float(rel.contiguous().median())
+            # Signed: the images fix optical depths beta * z, so a surface placed too near
+            # (log ratio < 0) is paid for by a density too high by the same factor, and vice versa.
+            ratio = depth[object_mask].clamp_min(0.0) / gt_depth[object_mask]
+            result["depth_log_ratio_median"] = float(torch.log(ratio.clamp_min(1e-6)).contiguous().median())
             if accumulation is not None:
                 result["object_accumulation"] = float(accumulation.float()[object_mask].mean())
         if accumulation is not None and bool((~object_mask).any()):

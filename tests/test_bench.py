@@ -110,6 +110,12 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
     assert m["depth_abs_rel"] == pytest.approx(0.5, abs=1e-6)
     assert m["depth_abs_rel_far"] == pytest.approx(0.5, abs=1e-6)
     assert m["depth_abs_rel_median"] == pytest.approx(0.5, abs=1e-6)
+    assert m["depth_log_ratio_median"] == pytest.approx(math.log(1.5), abs=1e-6)  # 1.5x too far
+    outputs["depth"] = depth.clamp_max(5) * 0.5
+    assert scoring.view_metrics(outputs, batch)["depth_log_ratio_median"] == pytest.approx(math.log(0.5), abs=1e-6)
+    outputs["depth"] = torch.zeros_like(depth)  # no surface at all: a large but finite bias
+    assert math.isfinite(scoring.view_metrics(outputs, batch)["depth_log_ratio_median"])
+    outputs["depth"] = depth.clamp_max(5) * 1.5
     assert "mean_backscatter" not in m and "object_accumulation" not in m
     accumulation = torch.ones(h, w, 1)
     accumulation[:4] = 0.25  # a haze of opacity over the open water
