@@ -70,19 +70,18 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_init_density: float = 0.5
     """Initial sigma_attn and sigma_bs, per scene unit, where ``medium_init_optical_depth`` does
     not apply (a dataset without SfM depths, or 0 there)."""
-    medium_init_optical_depth: float = 1.5
+    medium_init_optical_depth: float = 3.0
     """Initial sigma_attn and sigma_bs such that the SfM points' mean range (the dataparser's
     ``sfm_range_spread``) is this many attenuation lengths away, whatever the rig's width. A
     scene unit follows the rig (nerfstudio scales the poses), not the distance to the scene, so
     ``medium_init_density`` started turbid water (objects 3.4x farther than water's, rig 1.5x
     wider) at an optical depth of 6.5, where the objects' light and with it the attenuation's
-    gradient (``-z J e^{-beta z}``) vanish: green beta_D stayed 2.7x the truth. On a flat rig
-    the images barely tell the attenuation (docs/benchmarks.md, session 11), and training stops
-    it short of the truth on the side it started from (session 15, fog: from 1.89 /m to 1.40,
-    from 0.95 to 1.04; truth 1.2). An attenuation too high amplifies the clean colour
-    ``J = (I - B) e^{beta z}`` exponentially, one too low leaves some water in it, and the young
-    object field pushes the attenuation up, so the start is low: 1.5 (3.0 until session 15:
-    water's beta_D +25-35%, clean 17 dB; at 1.5 within 17%, 20.9 dB). 0: off."""
+    gradient (``-z J e^{-beta z}``) vanish: green beta_D stayed 2.7x the truth. 3.0 is the
+    optical depth ``medium_init_density`` gave the water and fog demos (1.88 /m at 1.58 m).
+    On a flat rig the images barely tell the attenuation, and training stops it short of the
+    truth on the side it started from (docs/benchmarks.md, session 15: fog from 1.89 /m to 1.40
+    and from 0.95 to 1.04, truth 1.2; 1.5 won on water and lost on fog and turbid water), so if
+    you know the water's attenuation length, start there. 0: off."""
     medium_scope: Literal["ray", "scene"] = "scene"
     """``ray``: the paper's MLP of the ray direction (water that changes with the viewing
     direction). ``scene``: one homogeneous water body, nine learned constants."""
