@@ -123,8 +123,8 @@ def view_metrics(
     * with ``gt_depth`` (range, same units as ``depth``; ``inf`` for open water): ``depth_abs_rel``,
       its far third ``depth_abs_rel_far``, the median ``depth_abs_rel_median`` (robust to the few
       empty rays whose depth is the far plane), the signed bias ``depth_log_ratio_median`` (the
-      median of ``log(depth / true)``: < 0 when surfaces sit too near), and the mean object opacity on object rays
-      (``object_accumulation``) and on open water (``open_water_accumulation``, which must stay 0);
+      median of ``log(depth / true)``: < 0 when surfaces sit too near), and the mean object
+      opacity on object rays (``object_accumulation``) and on open water (``open_water_accumulation``, which must stay 0);
     * with ``gt_clean`` and a ``clean`` output: ``clean_psnr``, ``clean_ssim``, on object pixels only
       when ``gt_depth`` says where open water is (it has no clean colour);
     * ``mean_backscatter`` when there is a ``backscatter`` output.
@@ -152,8 +152,11 @@ def view_metrics(
             result["depth_abs_rel_median"] = float(rel.contiguous().median())
             # Signed: the images fix optical depths beta * z, so a surface placed too near
             # (log ratio < 0) is paid for by a density too high by the same factor, and vice versa.
-            ratio = depth[object_mask].clamp_min(0.0) / gt_depth[object_mask]
-            result["depth_log_ratio_median"] = float(torch.log(ratio.clamp_min(1e-6)).contiguous().median())
+            # A true range of 0 (a surface at the lens) has no ratio: left out, never 0/0.
+            positive = object_mask & (gt_depth > 0)
+            if bool(positive.any()):
+                ratio = depth[positive].clamp_min(0.0) / gt_depth[positive]
+                result["depth_log_ratio_median"] = float(torch.log(ratio.clamp_min(1e-6)).contiguous().median())
             if accumulation is not None:
                 result["object_accumulation"] = float(accumulation.float()[object_mask].mean())
         if accumulation is not None and bool((~object_mask).any()):

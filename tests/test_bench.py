@@ -115,6 +115,11 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
     assert scoring.view_metrics(outputs, batch)["depth_log_ratio_median"] == pytest.approx(math.log(0.5), abs=1e-6)
     outputs["depth"] = torch.zeros_like(depth)  # no surface at all: a large but finite bias
     assert math.isfinite(scoring.view_metrics(outputs, batch)["depth_log_ratio_median"])
+    at_lens = {**batch, "gt_depth": torch.where(torch.isfinite(depth), torch.zeros_like(depth), depth)}
+    assert "depth_log_ratio_median" not in scoring.view_metrics(outputs, at_lens)  # no 0/0 ratio
+    half = depth.clone()
+    half[4:14] = 0.0  # half the object rays at the lens: the median of the others, finite
+    assert scoring.view_metrics(outputs, {**batch, "gt_depth": half})["depth_log_ratio_median"] == pytest.approx(-13.8155, abs=1e-3)
     outputs["depth"] = depth.clamp_max(5) * 1.5
     assert "mean_backscatter" not in m and "object_accumulation" not in m
     accumulation = torch.ones(h, w, 1)
