@@ -14,6 +14,11 @@ line every ``diagnostics_every`` steps):
 * ``medium_beta_D``, ``medium_beta_B`` (per world unit, i.e. 1/m for metric captures) and
   ``medium_B_inf``, per channel, mean over the batch's rays;
 * ``backscatter_share``: the share of the in-medium image that is backscatter;
+* ``direct_share_r``, ``_g``, ``_b``: per channel, the share of the in-medium image that is the
+  object's attenuated colour. One channel near 0 while the others are not is a dead colour
+  channel: the object colour's sigmoid saturated at black and the backscatter explains that
+  channel alone, which shows as a pink or purple ``clean`` image (measured on the water and fog
+  demos, docs/benchmarks.md, session 16); the log line then names the channel;
 * ``medium_model`` (added by the model): the medium model in use, as its index in
   :data:`~seathru_nerfstudio.medium_field.MEDIUM_MODELS` (-1: ``auto`` before its decision).
 """
@@ -58,7 +63,29 @@ def decomposition(outputs: Mapping[str, Tensor], gt_depth: Optional[Tensor], wor
             values[f"medium_{name}_{channel}"] = v
     rgb = outputs["rgb"].float().sum()
     values["backscatter_share"] = outputs["backscatter"].float().sum() / torch.clamp(rgb, min=1e-12)
+    if "direct" in outputs:
+        direct = outputs["direct"].float().reshape(-1, 3).sum(dim=0)
+        per_channel = outputs["rgb"].float().reshape(-1, 3).sum(dim=0)
+        for channel, d, total in zip(CHANNELS, direct, per_channel):
+            values[f"direct_share_{channel}"] = d / torch.clamp(total, min=1e-12)
     return values
+
+
+DEAD_CHANNEL_SHARE = 0.01
+"""A channel whose direct share is below this, while another channel's is at least
+:data:`LIVE_CHANNEL_SHARE`, is reported as dead in the log line."""
+LIVE_CHANNEL_SHARE = 0.05
+
+
+def dead_channels(values: Mapping[str, Tensor]) -> str:
+    """The channels (``"g"``, ``"gb"``, ...) whose object colour looks dead; ``""`` if none or
+    if the direct shares are not in ``values``."""
+    if not all(f"direct_share_{c}" in values for c in CHANNELS):
+        return ""
+    shares = {c: float(values[f"direct_share_{c}"]) for c in CHANNELS}
+    if max(shares.values()) < LIVE_CHANNEL_SHARE:
+        return ""
+    return "".join(c for c in CHANNELS if shares[c] < DEAD_CHANNEL_SHARE)
 
 
 def format_line(values: Mapping[str, Tensor]) -> str:
@@ -76,7 +103,13 @@ def format_line(values: Mapping[str, Tensor]) -> str:
     if "medium_model" in values:
         code = int(values["medium_model"])
         model = f"medium {MEDIUM_MODELS[code] if 0 <= code < len(MEDIUM_MODELS) else 'auto (deciding)'}  "
-    return (
+    line = (
         f"{model}{acc}  beta_D {rgb('beta_D')}  beta_B {rgb('beta_B')} /world unit  "
         f"B_inf {rgb('B_inf')}  backscatter share {float(values['backscatter_share']):.2f}"
     )
+    if all(f"direct_share_{c}" in values for c in CHANNELS):
+        line += "  direct share " + " ".join(f"{float(values[f'direct_share_{c}']):.2f}" for c in CHANNELS)
+        dead = dead_channels(values)
+        if dead:
+            line += f"  DEAD COLOUR CHANNEL {' '.join(dead)} (the clean image lacks it)"
+    return line
