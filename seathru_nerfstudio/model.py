@@ -29,6 +29,7 @@ from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_
 from seathru_nerfstudio.lazy_outputs import LazyOutputs
 from seathru_nerfstudio.losses import (
     backscatter_envelope_loss,
+    backscatter_excess_loss,
     binary_transmittance_loss,
     depth_kernel_variance,
     rawnerf_loss,
@@ -172,8 +173,8 @@ class SeathruModelConfig(NerfactoModelConfig):
     runs of 3; without it a wall in 2 of 4, once kept to step 6000), fixes the oracle-medium run
     (clean 7.1 -> 24.3 dB) and fog's dead clean image (11.1 -> 16.6 dB), +1.4 dB clean on turbid."""
     medium_envelope_quantile: float = 0.0
-    """If > 0, in the medium-first stage both densities also fit the backscatter as this lower
-    quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
+    """If > 0, in the medium-first stage the densities (``medium_envelope_densities``) also fit
+    the backscatter as this lower quantile (e.g. 0.01) of the image at the SfM depths (Sea-thru's dark-pixel estimate,
     :func:`~seathru_nerfstudio.losses.backscatter_envelope_loss`), so that the object field
     starts with a medium estimated from the data instead of ``medium_init_density``;
     attenuation starts equal to backscatter. Measured with the geometry stage (docs/benchmarks.md,
@@ -182,6 +183,18 @@ class SeathruModelConfig(NerfactoModelConfig):
     16.4 dB and the densities further off. Session 12, with ``auto``: it starts the attenuation
     equal to the backscatter, so ``auto`` chose ``uniform`` on water (in-medium 37.1 against 43.6 dB)
     and on turbid. Off by default; with it, force ``medium_model`` unless the water is uniform. 0: off."""
+    medium_envelope_densities: Literal["both", "backscatter"] = "both"
+    """Which densities fit the envelope (``medium_envelope_quantile``): ``both``, or only the
+    backscatter density, the one the envelope measures; the attenuation then keeps its start.
+    Measured in a 300-step probe (docs/benchmarks.md, session 16): on water it kept the green
+    object colour alive; on fog it did not, because the first stage's veiling light (the mean
+    image) is darker than the true one and the envelope's density comes out high under it."""
+    backscatter_excess_mult: float = 0.0
+    """Weight of :func:`~seathru_nerfstudio.losses.backscatter_excess_loss`, the backscatter above
+    the image. It moves only the backscatter density: the object geometry is held (else it would
+    pull the surfaces nearer) and so is the veiling light, which open water shows directly (else
+    it would darken it: measured on the water demo, blue B_inf 0.25 against 0.39 by step 300).
+    0: off."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour
@@ -606,9 +619,22 @@ class SeathruModel(NerfactoModel):
             sigma_bs=medium.sigma_bs,
             quadrature=self.config.quadrature,
         )
-        return self._collect_outputs(
+        outputs = self._collect_outputs(
             ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, densities_for_envelope
         )
+        if self.training and self.config.backscatter_excess_mult > 0 and not self.object_frozen:
+            held = render_seathru(
+                object_rgb=torch.zeros_like(field_outputs[FieldHeadNames.RGB]),
+                object_density=field_outputs[FieldHeadNames.DENSITY].detach(),
+                starts=ray_samples.frustums.starts,
+                deltas=ray_samples.deltas,
+                medium_rgb=medium.rgb.detach(),
+                sigma_attn=medium.sigma_attn,
+                sigma_bs=medium.sigma_bs,
+                quadrature=self.config.quadrature,
+            )
+            outputs["backscatter_geometry_held"] = held.backscatter
+        return outputs
 
     @property
     def clear_air(self) -> bool:
@@ -777,6 +803,10 @@ class SeathruModel(NerfactoModel):
                 scale=self.config.binary_prior_scale,
                 empty_weight=self.config.binary_prior_empty_weight,
             )
+        if "backscatter_geometry_held" in outputs:
+            loss_dict["backscatter_excess_loss"] = self.config.backscatter_excess_mult * backscatter_excess_loss(
+                outputs["backscatter_geometry_held"], batch["image"][..., :3].to(self.device), eps=self.config.rawnerf_eps
+            )
         if "medium_densities_for_envelope" in outputs and "depth_image" in batch:
             loss_dict["backscatter_envelope_loss"] = self._envelope_loss(outputs, batch)
         if self.training and self.config.depth_loss_mult > 0:
@@ -805,9 +835,10 @@ class SeathruModel(NerfactoModel):
         veil = outputs["medium_rgb"].detach()
         sigma_attn, sigma_bs = outputs["medium_densities_for_envelope"].split(3, dim=-1)
         quantile = self.config.medium_envelope_quantile
-        return backscatter_envelope_loss(image, ray_range, veil, sigma_attn, quantile) + backscatter_envelope_loss(
-            image, ray_range, veil, sigma_bs, quantile
-        )
+        loss = backscatter_envelope_loss(image, ray_range, veil, sigma_bs, quantile)
+        if self.config.medium_envelope_densities == "both":
+            loss = loss + backscatter_envelope_loss(image, ray_range, veil, sigma_attn, quantile)
+        return loss
 
     def _depth_loss(self, outputs, batch) -> Optional[torch.Tensor]:
         """nerfacto's DS-NeRF depth loss on the object weights, where a depth is known

@@ -119,6 +119,28 @@ def test_loss_dict_has_the_paper_terms_and_finite_gradients(model):
     model.zero_grad()
 
 
+def test_backscatter_excess_moves_the_backscatter_density_only():
+    from seathru_nerfstudio.losses import backscatter_excess_loss
+
+    m = tiny_model(backscatter_excess_mult=2.0, medium_scope="scene", medium_model="seathru", medium_first_steps=0)
+    m.train()
+    out = m(rays(32, seed=3))
+    target = torch.zeros(32, 3)  # a black image: every bit of backscatter is excess
+    losses = m.get_loss_dict(out, {"image": target}, m.get_metrics_dict(out, {"image": target}))
+    # the held-geometry backscatter is the one rendered (same geometry, same medium)
+    torch.testing.assert_close(out["backscatter_geometry_held"], out["backscatter"])
+    torch.testing.assert_close(losses["backscatter_excess_loss"], 2.0 * backscatter_excess_loss(out["backscatter"], target))
+    m.zero_grad()
+    losses["backscatter_excess_loss"].backward()
+    assert m.medium_field.density_raw.grad is not None and m.medium_field.density_raw.grad[3:].abs().sum() > 0
+    assert m.medium_field.rgb_logit.grad is None or m.medium_field.rgb_logit.grad.abs().sum() == 0  # veil held
+    field_grads = [p.grad for p in m.field.parameters() if p.grad is not None and p.grad.abs().sum() > 0]
+    assert not field_grads  # the surfaces are not moved to lower the backscatter
+    m.eval()
+    with torch.no_grad():
+        assert "backscatter_geometry_held" not in m(rays(4))
+
+
 def test_srgb_data_trains_with_plain_l2():
     model = tiny_model(color_space="srgb")
     model.train()
@@ -436,8 +458,27 @@ def test_training_metrics_carry_the_decomposition_diagnostics(model):
     torch.testing.assert_close(values["medium_beta_D_r"], out["medium_attenuation"][:, 0].mean().detach())
     share = out["backscatter"].sum() / out["rgb"].sum()
     torch.testing.assert_close(values["backscatter_share"], share.detach())
+    green = out["direct"][:, 1].sum() / out["rgb"][:, 1].sum()
+    torch.testing.assert_close(values["direct_share_g"], green.detach())
     line = diagnostics.format_line(values)
     assert "open water" in line and "depth error" in line and "beta_D" in line and "backscatter share" in line
+    assert "direct share" in line
+
+
+def test_a_dead_colour_channel_is_named_in_the_log_line():
+    from seathru_nerfstudio import diagnostics
+
+    values = {f"medium_{n}_{c}": torch.tensor(0.5) for n in ("beta_D", "beta_B", "B_inf") for c in "rgb"}
+    values.update(accumulation=torch.tensor(0.8), backscatter_share=torch.tensor(0.9))
+    shares = {"r": 0.2, "g": 0.001, "b": 0.1}
+    values.update({f"direct_share_{c}": torch.tensor(v) for c, v in shares.items()})
+    assert diagnostics.dead_channels(values) == "g"
+    assert "DEAD COLOUR CHANNEL g" in diagnostics.format_line(values)
+    # a scene that is nearly all backscatter in every channel has no live channel to compare with
+    values.update({f"direct_share_{c}": torch.tensor(0.004) for c in "rgb"})
+    assert diagnostics.dead_channels(values) == "" and "DEAD" not in diagnostics.format_line(values)
+    values.pop("direct_share_b")
+    assert diagnostics.dead_channels(values) == ""
 
 
 def test_medium_first_steps_freeze_the_object_field_only():
@@ -668,6 +709,24 @@ def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
     out = off(rays(8))
     batch = {"image": torch.rand(8, 3), "depth_image": torch.ones(8, 1)}
     assert "backscatter_envelope_loss" not in off.get_loss_dict(out, batch, off.get_metrics_dict(out, batch))
+
+
+def test_the_envelope_can_fit_the_backscatter_density_alone():
+    m = tiny_model(
+        medium_first_steps=5, medium_scope="scene", medium_envelope_quantile=0.01, medium_envelope_densities="backscatter"
+    )
+    m.train()
+    m.train_step = 0
+    depth = torch.full((32, 1), 0.6)
+    batch = {"image": torch.rand(32, 3), "depth_image": depth}
+    out = m(rays(32, seed=4))
+    losses = m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
+    losses["backscatter_envelope_loss"].backward()
+    density_grad = m.medium_field.density_raw.grad
+    assert (density_grad[:3] == 0).all() and (density_grad[3:].abs() > 0).all()
+    sigma_bs = out["medium_densities_for_envelope"].detach()[..., 3:]
+    expected = backscatter_envelope_loss(batch["image"], depth, out["medium_rgb"].detach(), sigma_bs, 0.01)
+    torch.testing.assert_close(losses["backscatter_envelope_loss"].detach(), expected)
 
 
 def test_densities_are_held_for_the_hold_steps_after_the_object_starts():
