@@ -195,6 +195,12 @@ class SeathruModelConfig(NerfactoModelConfig):
     pull the surfaces nearer) and so is the veiling light, which open water shows directly (else
     it would darken it: measured on the water demo, blue B_inf 0.25 against 0.39 by step 300).
     0: off."""
+    backscatter_excess_steps: Optional[int] = None
+    """If set, the backscatter excess loss acts only in the first this many training steps (it
+    rescues a dead colour channel early); ``None``: throughout. On a flat rig the attenuation
+    and the object colour trade off along a valley, and a one-sided term, however small at the
+    truth, walks the medium along it: on fog with ``auto`` (tied to ``fog``) throughout, beta
+    fell to 0.86 /m against 1.2 (docs/benchmarks.md, session 16)."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour
@@ -398,6 +404,14 @@ class SeathruModel(NerfactoModel):
         if early is not None and self.train_step is not None and self.train_step < self.config.binary_prior_early_steps:
             return early
         return self.config.binary_prior_mult
+
+    @property
+    def backscatter_excess_active(self) -> bool:
+        """True while the backscatter excess loss applies (``backscatter_excess_mult``, ``_steps``)."""
+        if self.config.backscatter_excess_mult <= 0:
+            return False
+        limit = self.config.backscatter_excess_steps
+        return limit is None or self.train_step is None or self.train_step < limit
 
     @property
     def densities_held(self) -> bool:
@@ -622,7 +636,7 @@ class SeathruModel(NerfactoModel):
         outputs = self._collect_outputs(
             ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, densities_for_envelope
         )
-        if self.training and self.config.backscatter_excess_mult > 0 and not self.object_frozen:
+        if self.training and self.backscatter_excess_active and not self.object_frozen:
             held = render_seathru(
                 object_rgb=torch.zeros_like(field_outputs[FieldHeadNames.RGB]),
                 object_density=field_outputs[FieldHeadNames.DENSITY].detach(),

@@ -139,6 +139,14 @@ def test_backscatter_excess_moves_the_backscatter_density_only():
     m.eval()
     with torch.no_grad():
         assert "backscatter_geometry_held" not in m(rays(4))
+    early = tiny_model(backscatter_excess_mult=2.0, backscatter_excess_steps=10, medium_first_steps=0)
+    early.train()
+    for step, expected in ((9, True), (10, False)):
+        early.train_step = step
+        out = early(rays(8, seed=5))
+        batch = {"image": torch.rand(8, 3)}
+        losses = early.get_loss_dict(out, batch, early.get_metrics_dict(out, batch))
+        assert ("backscatter_excess_loss" in losses) == expected, step
 
 
 def test_srgb_data_trains_with_plain_l2():
