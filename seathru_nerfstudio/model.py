@@ -189,18 +189,22 @@ class SeathruModelConfig(NerfactoModelConfig):
     Measured in a 300-step probe (docs/benchmarks.md, session 16): on water it kept the green
     object colour alive; on fog it did not, because the first stage's veiling light (the mean
     image) is darker than the true one and the envelope's density comes out high under it."""
-    backscatter_excess_mult: float = 0.0
+    backscatter_excess_mult: float = 10.0
     """Weight of :func:`~seathru_nerfstudio.losses.backscatter_excess_loss`, the backscatter above
-    the image. It moves only the backscatter density: the object geometry is held (else it would
-    pull the surfaces nearer) and so is the veiling light, which open water shows directly (else
-    it would darken it: measured on the water demo, blue B_inf 0.25 against 0.39 by step 300).
-    0: off."""
-    backscatter_excess_steps: Optional[int] = None
+    the image. A starting medium whose backscatter alone is above the image kills the object
+    colour in that channel (a pink ``clean`` image); this term moves the backscatter density
+    out of that state instead. It moves only that density: the object geometry is held (else it
+    would pull the surfaces nearer) and so is the veiling light, which open water shows directly
+    (else it would darken it: water demo, blue B_inf 0.25 against 0.39 by step 300). Measured
+    with ``backscatter_excess_steps`` 500 against 0 (docs/benchmarks.md, session 16, one run
+    each): turbid 44.7 / 18.3 dB and all 9 medium values within 20% (43.5 / 18.7, 7 of 9), water
+    43.5 / 17.6 (43.0 / 17.0), fog 40.4 / 21.5 (40.0 / 22.0). 0: off."""
+    backscatter_excess_steps: Optional[int] = 500
     """If set, the backscatter excess loss acts only in the first this many training steps (it
     rescues a dead colour channel early); ``None``: throughout. On a flat rig the attenuation
     and the object colour trade off along a valley, and a one-sided term, however small at the
     truth, walks the medium along it: on fog with ``auto`` (tied to ``fog``) throughout, beta
-    fell to 0.86 /m against 1.2 (docs/benchmarks.md, session 16)."""
+    fell to 0.86 /m against 1.2 and clean to 16.6 dB (docs/benchmarks.md, session 16)."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour

@@ -139,6 +139,11 @@ def test_backscatter_excess_moves_the_backscatter_density_only():
     m.eval()
     with torch.no_grad():
         assert "backscatter_geometry_held" not in m(rays(4))
+    off = tiny_model(backscatter_excess_mult=0.0, medium_first_steps=0)
+    off.train()
+    out = off(rays(8, seed=5))
+    batch = {"image": torch.rand(8, 3)}
+    assert "backscatter_excess_loss" not in off.get_loss_dict(out, batch, off.get_metrics_dict(out, batch))
     early = tiny_model(backscatter_excess_mult=2.0, backscatter_excess_steps=10, medium_first_steps=0)
     early.train()
     for step, expected in ((9, True), (10, False)):
