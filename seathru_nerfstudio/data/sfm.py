@@ -6,8 +6,9 @@ Conventions
   1/2.2): linear underwater frames are dark and flat, and SIFT's contrast threshold would
   find few features in them. The copies carry the same file names as the linear images,
   so COLMAP's image names are the dataset's image names.
-* COLMAP world units are arbitrary (whatever scale the mapper settled on); camera frames
-  are OpenCV (x right, y down, z forward), ``cam_from_world`` maps world to camera.
+* COLMAP world units are arbitrary up to the written files: the mapper's scale is rescaled
+  (:func:`normalise_gauge`) so the 99th percentile of the points' z-depths is 32.77 units,
+  which the uint16 depth PNGs hold without wrapping. Camera frames are OpenCV (x right, y down, z forward), ``cam_from_world`` maps world to camera.
 * ``transforms.json`` is written by nerfstudio's own ``colmap_to_json`` (OpenGL camera
   axes, z-up world, like ``ns-process-data``). ``poses_bounds.npy`` follows LLFF's
   ``imgs2poses``: one row per registered image sorted by name, a 3×5 matrix
@@ -185,9 +186,52 @@ def llff_poses_bounds(reconstruction: pycolmap.Reconstruction) -> tuple[list[str
     return [im.name for im in images], np.array(rows, dtype=np.float64).reshape(-1, 17)
 
 
+SPARSE_DEPTH_SCALE = 1000.0
+"""``depth/*.png`` hold z-depth × this as uint16 (nerfstudio's default ``depth_unit_scale_factor``
+is its inverse)."""
+SPARSE_DEPTH_MAX = 65535 / SPARSE_DEPTH_SCALE
+"""The largest z-depth (COLMAP units) a uint16 depth PNG can hold; nerfstudio's
+``create_sfm_depth`` casts with ``astype(np.uint16)``, which wraps anything beyond it."""
+GAUGE_DEPTH_QUANTILE = 0.99
+GAUGE_DEPTH_TARGET = 0.5 * SPARSE_DEPTH_MAX
+"""The gauge puts the 99th percentile of the observed points' z-depths here (COLMAP units):
+2× headroom below :data:`SPARSE_DEPTH_MAX` for the farthest points, and 1/32767 resolution
+at that depth."""
+
+
+def observed_depths(reconstruction: pycolmap.Reconstruction) -> npt.NDArray[np.float64]:
+    """Z-depth (COLMAP units, along each camera's optical axis) of every observation of a 3D point."""
+    depths = []
+    for image_id in reconstruction.reg_image_ids():
+        image = reconstruction.images[image_id]
+        world_to_camera = image.cam_from_world().matrix()
+        xyz = np.array([reconstruction.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()])
+        if xyz.size:
+            depths.append(xyz.reshape(-1, 3) @ world_to_camera[2, :3] + world_to_camera[2, 3])
+    return np.concatenate(depths) if depths else np.zeros(0)
+
+
+def normalise_gauge(reconstruction: pycolmap.Reconstruction) -> float:
+    """Rescale the reconstruction in place so its sparse depths fit a uint16 depth PNG.
+
+    The mapper's scale is arbitrary (set by its first image pair), and its points can sit
+    past :data:`SPARSE_DEPTH_MAX`, where the depth PNGs would wrap around silently. A
+    similarity changes nothing downstream: nerfstudio rescales the poses, and the depths
+    move with them. Returns the factor applied (new units per old unit).
+    """
+    depths = observed_depths(reconstruction)
+    depths = depths[depths > 0]
+    if depths.size == 0:
+        return 1.0
+    factor = GAUGE_DEPTH_TARGET / float(np.quantile(depths, GAUGE_DEPTH_QUANTILE))
+    reconstruction.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
+    return factor
+
+
 def write_outputs(result: SfmResult, output_dir: Path) -> None:
     """Write ``sparse/0`` (COLMAP binaries), ``depth/`` (the SfM points as sparse depth maps, via
-    nerfstudio's ``create_sfm_depth``: 16-bit, COLMAP units x 1000, 0 = no point),
+    nerfstudio's ``create_sfm_depth``: 16-bit, COLMAP units x 1000, 0 = no point; the gauge is
+    first rescaled by :func:`normalise_gauge` so they fit),
     ``transforms.json`` + ``sparse_pc.ply`` (via nerfstudio's ``colmap_to_json``, with each
     frame's ``depth_file_path``) and ``poses_bounds.npy`` into ``output_dir``.
 
@@ -198,12 +242,19 @@ def write_outputs(result: SfmResult, output_dir: Path) -> None:
     # both pull in torch: only when needed
     from nerfstudio.process_data.colmap_utils import colmap_to_json, create_sfm_depth
 
+    normalise_gauge(result.reconstruction)
     sparse = output_dir / "sparse" / "0"
     sparse.mkdir(parents=True, exist_ok=True)
     result.reconstruction.write(sparse)
     depth_dir = output_dir / "depth"
     depth_dir.mkdir(exist_ok=True)
-    depth_paths = create_sfm_depth(recon_dir=sparse, output_dir=depth_dir, verbose=False)
+    depth_paths = create_sfm_depth(
+        recon_dir=sparse,
+        output_dir=depth_dir,
+        verbose=False,
+        depth_scale_to_integer_factor=SPARSE_DEPTH_SCALE,
+        max_depth=SPARSE_DEPTH_MAX,  # drop, rather than wrap, the few points beyond the PNG's range
+    )
     num_frames = colmap_to_json(recon_dir=sparse, output_dir=output_dir, image_id_to_depth_path=depth_paths)
     if num_frames != len(result.registered):
         raise SfmError(f"transforms.json has {num_frames} frames, expected {len(result.registered)}")
