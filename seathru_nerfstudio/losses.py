@@ -98,9 +98,11 @@ def depth_kernel_variance(
     no gradient: on the turbid demo (objects 1-8 m, samples about 0.5 m apart at 5 m before the
     proposal samplers learn) a fixed 2 cm left the geometry unformed. With ``sigma >= h`` the
     nearest midpoint gets at least ``e^{-1/8}`` of the kernel; where the samples are denser
-    than ``sigma_floor`` the kernel is the floor, as before.
+    than ``sigma_floor`` the kernel is the floor, as before. The width is capped at the square
+    root of the dtype's largest value, so the variance stays finite for any finite input.
     """
     midpoints = 0.5 * (starts + ends)
     nearest = torch.argmin((midpoints - termination_range[..., None, :]).abs(), dim=-2, keepdim=True)
     spacing = torch.gather(ends - starts, -2, nearest)
-    return torch.clamp(spacing.detach(), min=sigma_floor) ** 2
+    largest = torch.finfo(spacing.dtype).max ** 0.5  # its square is still finite
+    return torch.clamp(spacing.detach(), min=sigma_floor).clamp(max=largest) ** 2

@@ -304,6 +304,11 @@ class SeathruModel(NerfactoModel):
         metadata = self.kwargs.get("metadata") or {}
         self.world_scale = float(metadata.get(SCALE_KEY, 1.0))
         """Scene units per world unit (metre): a density per scene unit times this is per metre."""
+        if not (math.isfinite(self.world_scale) and self.world_scale > 0):
+            raise ValueError(
+                f"seathru: the dataparser's scale ({SCALE_KEY}) is {self.world_scale}; it must be finite and "
+                "positive (do all cameras sit at one point?)"
+            )
         self.medium_field = self._build_medium()
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
         self.register_buffer("medium_model_code", torch.tensor(code, dtype=torch.long))

@@ -69,3 +69,13 @@ def test_finite_for_extreme_ranges():
     ranges = torch.tensor([[0.0], [1e30], [-5.0]])
     variance = depth_kernel_variance(starts.expand(3, -1, -1), ends.expand(3, -1, -1), ranges, sigma_floor=1e-3)
     assert torch.isfinite(variance).all() and (variance > 0).all()
+
+
+def test_the_variance_stays_finite_for_huge_intervals():
+    """A spacing of 1e30 squared would overflow float32 (and 1e200 float64); the width is capped instead."""
+    for dtype, huge in ((torch.float32, 1e30), (torch.float64, 1e200)):
+        starts = torch.tensor([0.0, huge], dtype=dtype).view(1, 2, 1)
+        ends = torch.tensor([huge, 2 * huge], dtype=dtype).view(1, 2, 1)
+        variance = depth_kernel_variance(starts, ends, torch.tensor([[0.1 * huge]], dtype=dtype), sigma_floor=0.01)
+        assert torch.isfinite(variance).all()
+        assert variance.item() >= 0.99 * torch.finfo(dtype).max  # capped at the top, not shrunk

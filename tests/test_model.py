@@ -756,3 +756,13 @@ def test_densities_are_held_for_the_hold_steps_after_the_object_starts():
         if step >= 5:  # the object colour learns meanwhile
             head = [p for n, p in model.field.named_parameters() if "mlp_head" in n]
             assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head), step
+
+
+def test_a_zero_or_non_finite_dataparser_scale_is_refused():
+    """Densities are converted to 1/m through the scale; 0 would divide by zero later, so it is refused at set-up."""
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
+
+    for scale in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match=SCALE_KEY):
+            tiny_model(metadata={SCALE_KEY: scale})
+    assert tiny_model(metadata={SCALE_KEY: 0.25}).world_scale == 0.25

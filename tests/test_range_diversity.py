@@ -89,3 +89,12 @@ def test_dataparser_reports_it_in_world_units_and_a_deeper_rig_spreads_more(tmp_
     assert rescaled.spread == pytest.approx(flat_spread.spread, rel=1e-6)
     assert rescaled.mean_range == pytest.approx(flat_spread.mean_range, rel=1e-6)
     assert spread_of(deep).spread > 3 * flat_spread.spread
+
+
+def test_a_non_positive_point_budget_is_refused():
+    depth = np.zeros((SIZE, SIZE))
+    depth[4, 4] = 2.0
+    for budget in (0, -3):
+        with pytest.raises(ValueError, match="max_points_per_view"):
+            range_spread([depth], np.stack([_camera_at(0.0)]), np.full(1, F), np.full(1, F), np.full(1, C), np.full(1, C),
+                         max_points_per_view=budget)  # fmt: skip

@@ -66,6 +66,8 @@ def range_spread(
             statistics are means, and a capture of hundreds of views would otherwise cost
             views² × points at every start).
     """
+    if max_points_per_view < 1:
+        raise ValueError(f"range_spread: max_points_per_view must be at least 1, got {max_points_per_view}")
     c2w = np.asarray(camera_to_worlds, dtype=np.float64)
     sizes = [np.asarray(d).shape for d in z_depths]
     per_point_ranges = []
