@@ -34,7 +34,7 @@ from seathru_nerfstudio.losses import (
     depth_kernel_variance,
     rawnerf_loss,
 )
-from seathru_nerfstudio.data.nerfstudio_data import RANGE_SPREAD_KEY, SCALE_KEY
+from seathru_nerfstudio.data.nerfstudio_data import RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.medium_field import (
     MEDIUM_MODELS,
     FixedMedium,
@@ -43,8 +43,10 @@ from seathru_nerfstudio.medium_field import (
     SceneMedium,
     blend_media,
     clear_medium,
+    inverse_softplus,
     tie,
 )
+from seathru_nerfstudio.medium_fit import fit_densities
 from seathru_nerfstudio.rendering import Quadrature, SeathruRender, object_weights, render_seathru
 
 WATER_OUTPUTS = ("rgb", "direct", "backscatter")
@@ -207,6 +209,11 @@ class SeathruModelConfig(NerfactoModelConfig):
     and the object colour trade off along a valley, and a one-sided term, however small at the
     truth, walks the medium along it: on fog with ``auto`` (tied to ``fog``) throughout, beta
     fell to 0.86 /m against 1.2 and clean to 16.6 dB (docs/benchmarks.md, session 16)."""
+    medium_fit_step: Optional[int] = None
+    """Experimental: after this training step, set the scene medium's attenuation and backscatter
+    densities to their fit to the SfM points' colours across views, given the veiling light
+    learned by then (:mod:`seathru_nerfstudio.medium_fit`). Needs ``medium_scope scene`` and the
+    dataparser's ``--sfm-observations True``. ``None``: off (docs/benchmarks.md, session 17)."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour
@@ -279,6 +286,11 @@ class SeathruModelConfig(NerfactoModelConfig):
                 "seathru: medium_model auto decides at medium_auto_decision_step "
                 f"({self.medium_auto_decision_step}), which must come after medium_first_steps "
                 f"({self.medium_first_steps}), from medium_auto_evidence_steps ({self.medium_auto_evidence_steps}) > 0 steps"
+            )
+        if self.medium_fit_step is not None and (self.medium_scope != "scene" or self.medium_oracle is not None):
+            raise ValueError(
+                "seathru: medium_fit_step fits the nine constants of one water body: it needs medium_scope "
+                f"scene and no medium_oracle (got medium_scope {self.medium_scope!r}, medium_oracle {self.medium_oracle})"
             )
         if self.predict_normals:
             raise ValueError(
@@ -468,8 +480,16 @@ class SeathruModel(NerfactoModel):
         def set_step(step: int) -> None:
             self.train_step = step
 
+        optimizers = getattr(training_callback_attributes, "optimizers", None)
+        if self.config.medium_fit_step is not None:  # before auto's decision at the same step
+            callbacks.append(
+                TrainingCallback(
+                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    update_every_num_iters=1,
+                    func=lambda step: self._fit_medium(step, optimizers),
+                )
+            )
         if self.config.medium_model == "auto":
-            optimizers = getattr(training_callback_attributes, "optimizers", None)
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
@@ -486,6 +506,37 @@ class SeathruModel(NerfactoModel):
             )
         )
         return callbacks
+
+    def _fit_medium(self, step: int, optimizers: Optional[Optimizers] = None) -> None:
+        """``medium_fit_step``: replace the densities by their fit to the SfM observations under the
+        veiling light learned so far; ``optimizers``: the trainer's, whose density state is cleared."""
+        if step + 1 != self.config.medium_fit_step:
+            return
+        table = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
+        if table is None or table.num_observations == 0:
+            CONSOLE.print(
+                f"[bold yellow]seathru step {step}: medium_fit_step has no SfM observations to fit "
+                "(pass --sfm-observations True to the dataparser); the densities train on"
+            )
+            return
+        medium = self.medium_field
+        with torch.no_grad():
+            densities = torch.nn.functional.softplus(medium.density_raw.double()) * self.world_scale
+            veil = torch.sigmoid(medium.rgb_logit.double())
+        beta_d, beta_b, residual = fit_densities(
+            torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:]
+        )
+        fitted = torch.cat([beta_d, beta_b]) / self.world_scale
+        with torch.no_grad():
+            medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
+        if optimizers is not None and "medium_density" in optimizers.optimizers:
+            optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
+        show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+        CONSOLE.print(
+            f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations[/] "
+            f"(residual {residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
+            f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}"
+        )
 
     def _decide_medium_model(self, step: int, optimizers: Optional[Optimizers] = None) -> None:
         """``auto``: at ``medium_auto_decision_step``, keep the simplest medium model the warm-up's

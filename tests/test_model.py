@@ -6,6 +6,7 @@ import subprocess
 import sys
 import warnings
 
+import numpy as np
 import pytest
 import torch
 
@@ -766,3 +767,27 @@ def test_a_zero_or_non_finite_dataparser_scale_is_refused():
         with pytest.raises(ValueError, match=SCALE_KEY):
             tiny_model(metadata={SCALE_KEY: scale})
     assert tiny_model(metadata={SCALE_KEY: 0.25}).world_scale == 0.25
+
+
+def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations():
+    """At ``medium_fit_step`` the scene medium's densities (per scene unit) become the fit (per metre)
+    divided by the scale; before that step nothing changes; a ray medium is refused."""
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
+    from seathru_nerfstudio.data.sfm_observations import SfmObservations
+
+    rng = np.random.default_rng(0)
+    beta_d, beta_b = np.array([1.3, 1.2, 0.9]), np.array([0.95, 0.85, 0.7])
+    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
+    colour = rng.uniform(0.1, 1.0, (200, 1, 3))
+    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))  # colours set below, under the model's veil
+    m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10)
+    veil = torch.sigmoid(m.medium_field.rgb_logit.detach().double()).numpy()
+    table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
+    before = m.medium_field.density_raw.detach().clone()
+    m._fit_medium(step=5)
+    torch.testing.assert_close(m.medium_field.density_raw.detach(), before)
+    m._fit_medium(step=9)
+    sigma = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
+    torch.testing.assert_close(sigma * 2.0, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
+    with pytest.raises(ValueError, match="medium_fit_step"):
+        tiny_model(metadata={SCALE_KEY: 2.0}, medium_fit_step=10, medium_scope="ray")

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Dict, List, Type
 
+import cv2
 import numpy as np
 
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
@@ -34,10 +35,14 @@ from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, legacy_paths
+from seathru_nerfstudio.data.linear_images import read_linear_image
 from seathru_nerfstudio.data.range_diversity import RangeSpread, range_spread
+from seathru_nerfstudio.data.sfm_observations import SfmObservations, sfm_observations
 
 RANGE_SPREAD_KEY = "sfm_range_spread"
 """Metadata key (training split): :class:`RangeSpread` of the SfM points, world units."""
+SFM_OBSERVATIONS_KEY = "sfm_observations"
+"""Metadata key (training split, with ``sfm_observations``): :class:`SfmObservations`, world units."""
 SCALE_KEY = "dataparser_scale"
 """Metadata key: scene units per world unit (a float)."""
 NEAR_PERCENTILE = 0.1
@@ -50,6 +55,10 @@ class SeathruNerfstudioDataParserConfig(NerfstudioDataParserConfig):
     """``nerfstudio-data`` (transforms.json), with the scale in the model's metadata."""
 
     _target: Type = field(default_factory=lambda: SeathruNerfstudio)
+    sfm_observations: bool = False
+    """Also tabulate the SfM points' ranges and colours in every training view that sees them
+    (:mod:`seathru_nerfstudio.data.sfm_observations`), for the model's ``medium_fit_step``.
+    Reads every training image once more at start-up."""
 
 
 class GroundTruthError(ValueError):
@@ -76,6 +85,13 @@ class SeathruNerfstudio(Nerfstudio):
                 spread = sfm_range_spread([depth * unit for depth in depths], outputs.cameras, scale)
                 outputs.metadata[RANGE_SPREAD_KEY] = spread
                 CONSOLE.print(spread.summary())
+                if self.config.sfm_observations:
+                    table = observations_of([depth * unit for depth in depths], outputs, scale)
+                    outputs.metadata[SFM_OBSERVATIONS_KEY] = table
+                    CONSOLE.print(
+                        f"SfM observations: {table.num_points} points seen {table.num_observations} times in all "
+                        "(for medium_fit_step)"
+                    )
         return outputs
 
     def _ground_truth(self, image_filenames: List[Path]) -> Dict[str, List[Path]]:
@@ -139,4 +155,24 @@ def sfm_range_spread(world_depths: List[np.ndarray], cameras, scene_per_world: f
     camera_to_worlds[:, :, 3] /= scene_per_world
     return range_spread(
         world_depths, camera_to_worlds, flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
+    )
+
+
+def observations_of(world_depths: List[np.ndarray], outputs: DataparserOutputs, scene_per_world: float) -> SfmObservations:
+    """:func:`sfm_observations` of the sparse depth maps (world units) and the split's images
+    (resized to the cameras' size), under nerfstudio's cameras scaled back to world units."""
+    cameras = outputs.cameras
+    images = []
+    for path, height, width in zip(
+        outputs.image_filenames, cameras.height.flatten().tolist(), cameras.width.flatten().tolist()
+    ):
+        image = read_linear_image(path)[..., :3]
+        if image.shape[:2] != (height, width):
+            image = cv2.resize(image, (int(width), int(height)), interpolation=cv2.INTER_AREA)
+        images.append(image)
+    flat = lambda values: values.flatten().double().numpy()  # noqa: E731
+    camera_to_worlds = cameras.camera_to_worlds.double().numpy().copy()
+    camera_to_worlds[:, :, 3] /= scene_per_world
+    return sfm_observations(
+        world_depths, images, camera_to_worlds, flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
     )

@@ -1,0 +1,120 @@
+"""What the SfM points look like from every view that sees them: ranges and colours.
+
+A surface point at range ``z`` from a camera shows ``J e^{-β_D z} + B∞ (1 - e^{-β_B z})``
+(the paper's Eq. 5 for one opaque surface). Seen from several views at different ranges, its
+colour changes only through the medium, so a table of (range, colour) per point and view
+determines the densities once the veiling light is known (:mod:`seathru_nerfstudio.medium_fit`).
+
+Each sparse depth pixel is back-projected and projected into every view. A projection counts as
+an observation only where that view's own sparse depth map holds a point within
+``window`` pixels at the same z-depth (to ``depth_tolerance``): the surface is visible there,
+not hidden behind another. Colours are sampled bilinearly from the linear images.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+import numpy.typing as npt
+
+
+@dataclass(frozen=True)
+class SfmObservations:
+    """Per SfM point ``p`` and view ``v``: the range (world units) and the linear colour seen."""
+
+    ranges: npt.NDArray[np.float64]
+    """(P, V) distance from view ``v``'s camera centre to point ``p``; NaN where not observed."""
+    colours: npt.NDArray[np.float64]
+    """(P, V, 3) linear RGB at the point's projection in view ``v``; NaN where not observed."""
+
+    @property
+    def num_points(self) -> int:
+        return int(self.ranges.shape[0])
+
+    @property
+    def num_observations(self) -> int:
+        return int(np.isfinite(self.ranges).sum())
+
+
+def _bilinear(image: npt.NDArray[np.floating], u: npt.NDArray[np.float64], v: npt.NDArray[np.float64]):
+    """Colours at continuous pixel coordinates (pixel centres at +0.5), inside the image."""
+    x, y = u - 0.5, v - 0.5
+    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+    return (
+        image[y0, x0] * (1 - ax) * (1 - ay)
+        + image[y0, x0 + 1] * ax * (1 - ay)
+        + image[y0 + 1, x0] * (1 - ax) * ay
+        + image[y0 + 1, x0 + 1] * ax * ay
+    )
+
+
+def sfm_observations(
+    z_depths: Sequence[npt.NDArray[np.floating]],
+    images: Sequence[npt.NDArray[np.floating]],
+    camera_to_worlds: npt.NDArray[np.floating],
+    fx: npt.NDArray[np.floating],
+    fy: npt.NDArray[np.floating],
+    cx: npt.NDArray[np.floating],
+    cy: npt.NDArray[np.floating],
+    max_points_per_view: int = 500,
+    window: int = 2,
+    depth_tolerance: float = 0.03,
+) -> SfmObservations:
+    """The observation table of the sparse depth maps' points.
+
+    Args:
+        z_depths: per view, an (H, W) z-depth map (world units, along the viewing axis), 0 = unknown.
+        images: per view, the (H, W, 3) linear image the depths belong to.
+        camera_to_worlds: (N, 3, 4) nerfstudio/OpenGL camera-to-world (looks along -z, +y up), world units.
+        fx, fy, cx, cy: (N,) pinhole intrinsics in pixels.
+        max_points_per_view: an evenly strided subset of each view's points beyond this many.
+        window: a projection is visible if the view's sparse map has a point within this many pixels...
+        depth_tolerance: ...whose z-depth matches the projection's to this fraction.
+    """
+    if max_points_per_view < 1 or window < 0 or not depth_tolerance > 0:
+        raise ValueError(
+            f"sfm_observations: need max_points_per_view >= 1, window >= 0, depth_tolerance > 0; got "
+            f"{max_points_per_view}, {window}, {depth_tolerance}"
+        )
+    if len(images) != len(z_depths):
+        raise ValueError(f"sfm_observations: {len(z_depths)} depth maps but {len(images)} images")
+    c2w = np.asarray(camera_to_worlds, dtype=np.float64)
+    depths = [np.asarray(d, dtype=np.float64) for d in z_depths]
+    points = []
+    for i, depth in enumerate(depths):
+        v, u = np.nonzero(depth > 0)
+        if u.size == 0:
+            continue
+        stride = -(-u.size // max_points_per_view)
+        v, u = v[::stride], u[::stride]
+        z = depth[v, u]
+        camera = np.stack([(u + 0.5 - cx[i]) / fx[i] * z, -(v + 0.5 - cy[i]) / fy[i] * z, -z], axis=-1)
+        points.append(camera @ c2w[i, :, :3].T + c2w[i, :, 3])
+    if not points:
+        return SfmObservations(np.zeros((0, len(depths))), np.zeros((0, len(depths), 3)))
+    xyz = np.concatenate(points)
+    ranges = np.full((len(xyz), len(depths)), np.nan)
+    colours = np.full((len(xyz), len(depths), 3), np.nan)
+    for j, depth in enumerate(depths):
+        height, width = depth.shape
+        local = (xyz - c2w[j, :, 3]) @ c2w[j, :, :3]
+        ahead = -local[:, 2]
+        safe = np.where(ahead > 0, ahead, 1.0)
+        pu = fx[j] * local[:, 0] / safe + cx[j]
+        pv = -fy[j] * local[:, 1] / safe + cy[j]
+        inside = (ahead > 0) & (pu >= 0.5) & (pu < width - 1.5) & (pv >= 0.5) & (pv < height - 1.5)
+        rows, cols = np.floor(pv[inside]).astype(int), np.floor(pu[inside]).astype(int)
+        visible = np.zeros(rows.size, dtype=bool)
+        for dy in range(-window, window + 1):
+            for dx in range(-window, window + 1):
+                known = depth[np.clip(rows + dy, 0, height - 1), np.clip(cols + dx, 0, width - 1)]
+                visible |= (known > 0) & (np.abs(known - ahead[inside]) < depth_tolerance * ahead[inside])
+        seen = np.nonzero(inside)[0][visible]
+        image = np.asarray(images[j], dtype=np.float64)
+        ranges[seen, j] = np.linalg.norm(xyz[seen] - c2w[j, :, 3], axis=-1)
+        colours[seen, j] = _bilinear(image, pu[seen], pv[seen])
+    multi = np.isfinite(ranges).sum(axis=1) >= 2  # one view alone says nothing about the medium
+    return SfmObservations(ranges=ranges[multi], colours=colours[multi])

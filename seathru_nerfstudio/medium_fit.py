@@ -1,0 +1,92 @@
+"""The medium's densities fitted to the SfM points' colours across views, given the veiling light.
+
+Each observation ``k`` of point ``p`` at range ``z_k`` (world units) obeys, per channel,
+
+    I_k = J_p a_k + B∞ (1 - e^{-β_B z_k}),   a_k = e^{-β_D z_k},
+
+with one unknown colour ``J_p ≥ 0`` per point. For given densities the best ``J_p`` is the
+least-squares ``max(0, Σ a_k (I_k - B_k) / Σ a_k²)``, so only ``β_D`` and ``β_B`` remain: they
+minimise the mean squared residual. ``B∞`` must be given: the points alone hardly tell it from
+the backscatter density, but the open water shows it directly (the first stage learns it).
+
+Why this exists: the images determine ``β_D`` only through how a point's colour changes with
+its range, and gradient descent on the radiance field follows that weak signal slowly (water:
+22–33% high after 1500 steps, docs/benchmarks.md, session 16). Here the same information is
+fitted directly, on a few thousand numbers (L-BFGS, a second or two). The fit is only as good as the veiling light given
+to it; channels whose backscatter is tiny (small ``B∞``) leave ``β_B`` undetermined.
+"""
+
+from __future__ import annotations
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+
+def best_colours(
+    ranges: Float[Tensor, "P V"],
+    colours: Float[Tensor, "P V 3"],
+    observed: Float[Tensor, "P V"],
+    beta_d: Float[Tensor, "3"],
+    beta_b: Float[Tensor, "3"],
+    veil: Float[Tensor, "3"],
+) -> tuple[Float[Tensor, "P 3"], Float[Tensor, "P V 3"]]:
+    """Per point the least-squares object colour ``J ≥ 0``, and the predicted colours.
+
+    ``observed`` is 1 where an observation exists and 0 elsewhere (``ranges`` and ``colours``
+    must be finite there too). Returns ``(J, J a + B)``."""
+    z = ranges[..., None]
+    transmittance = torch.exp(-beta_d * z)
+    backscatter = veil * -torch.expm1(-beta_b * z)
+    weight = observed[..., None]
+    numerator = (weight * transmittance * (colours - backscatter)).sum(dim=1)
+    denominator = (weight * transmittance**2).sum(dim=1)
+    object_colour = torch.clamp(numerator / torch.clamp(denominator, min=1e-30), min=0.0)
+    return object_colour, object_colour[:, None, :] * transmittance + backscatter
+
+
+def fit_densities(
+    ranges: Float[Tensor, "P V"],
+    colours: Float[Tensor, "P V 3"],
+    veil: Float[Tensor, "3"],
+    start_attenuation: Float[Tensor, "3"],
+    start_backscatter: Float[Tensor, "3"],
+    max_iterations: int = 200,
+) -> tuple[Float[Tensor, "3"], Float[Tensor, "3"], float]:
+    """``(β_D, β_B, mean squared residual)`` in 1/world unit, fitted by L-BFGS on the log-densities.
+
+    ``ranges`` and ``colours`` carry NaN where a point was not observed. The starts must be
+    positive; the fit moves them in log space, so the densities stay positive."""
+    if not (torch.all(start_attenuation > 0) and torch.all(start_backscatter > 0)):
+        raise ValueError("fit_densities: the starting densities must be positive")
+    observed = torch.isfinite(ranges) & torch.isfinite(colours).all(dim=-1)
+    if int(observed.sum()) == 0:
+        raise ValueError("fit_densities: no observations")
+    weight = observed.double()
+    z = torch.where(observed, ranges, torch.zeros_like(ranges)).double()
+    rgb = torch.where(observed[..., None], colours, torch.zeros_like(colours)).double()
+    veil = veil.detach().double()
+    log_densities = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double()).requires_grad_(True)
+    count = weight.sum() * 3
+
+    def residual() -> Tensor:
+        densities = torch.exp(log_densities)
+        _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
+        return ((predicted - rgb) ** 2 * weight[..., None]).sum() / count
+
+    optimizer = torch.optim.LBFGS(
+        [log_densities], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-12, tolerance_change=1e-15,
+        line_search_fn="strong_wolfe",
+    )  # fmt: skip
+
+    def closure() -> Tensor:
+        optimizer.zero_grad()
+        loss = residual()
+        loss.backward()
+        return loss
+
+    optimizer.step(closure)
+    densities = torch.exp(log_densities.detach())
+    with torch.no_grad():
+        final = float(residual())
+    return densities[:3], densities[3:], final

@@ -1,0 +1,98 @@
+"""The SfM observation table and the densities fitted to it: closed forms and constructed scenes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from seathru_nerfstudio.data.sfm_observations import sfm_observations
+from seathru_nerfstudio.medium_fit import best_colours, fit_densities
+
+BETA_D = torch.tensor([1.3, 1.2, 0.9], dtype=torch.float64)
+BETA_B = torch.tensor([0.95, 0.85, 0.7], dtype=torch.float64)
+VEIL = torch.tensor([0.07, 0.2, 0.39], dtype=torch.float64)
+
+
+def _observations(num_points=300, num_views=8, seed=0):
+    """Points with colours in [0.1, 1] seen at ranges 1-3 m (each point's own spread of 10%), some unobserved."""
+    rng = np.random.default_rng(seed)
+    base = rng.uniform(1.0, 3.0, (num_points, 1))
+    ranges = torch.tensor(base * rng.uniform(0.9, 1.1, (num_points, num_views)))
+    colour = torch.tensor(rng.uniform(0.1, 1.0, (num_points, 3)))
+    images = colour[:, None, :] * torch.exp(-BETA_D * ranges[..., None]) + VEIL * -torch.expm1(-BETA_B * ranges[..., None])
+    hidden = torch.tensor(rng.uniform(size=(num_points, num_views)) < 0.3)
+    ranges[hidden] = float("nan")
+    images[hidden] = float("nan")
+    return ranges, images, colour
+
+
+def test_the_best_colour_is_the_true_one_under_the_true_medium():
+    ranges, images, colour = _observations()
+    observed = torch.isfinite(ranges).double()
+    z = torch.nan_to_num(ranges)
+    best, predicted = best_colours(z, torch.nan_to_num(images), observed, BETA_D, BETA_B, VEIL)
+    torch.testing.assert_close(best, colour)
+    torch.testing.assert_close(predicted[observed.bool()], images[observed.bool()])
+
+
+def test_the_fit_recovers_the_medium_from_either_side():
+    ranges, images, _ = _observations()
+    for start in (0.5, 2.5):
+        s = torch.full((3,), start, dtype=torch.float64)
+        beta_d, beta_b, residual = fit_densities(ranges, images, VEIL, s, s)
+        torch.testing.assert_close(beta_d, BETA_D, rtol=0.02, atol=0)
+        torch.testing.assert_close(beta_b, BETA_B, rtol=0.05, atol=0)
+        assert residual < 1e-9
+
+
+def test_a_wrong_veil_moves_the_fit_and_extreme_inputs_stay_finite():
+    ranges, images, _ = _observations()
+    s = torch.full((3,), 1.0, dtype=torch.float64)
+    beta_d, _, residual = fit_densities(ranges, images, VEIL * 1.3, s, s)
+    assert residual > 1e-7 and not torch.allclose(beta_d, BETA_D, rtol=0.02)
+    huge = torch.full((2, 3), 1e30, dtype=torch.float64)
+    beta_d, beta_b, residual = fit_densities(huge, torch.ones(2, 3, 3, dtype=torch.float64), VEIL, s, s, max_iterations=5)
+    assert torch.isfinite(beta_d).all() and torch.isfinite(beta_b).all() and np.isfinite(residual)
+    with pytest.raises(ValueError, match="positive"):
+        fit_densities(ranges, images, VEIL, -s, s)
+    with pytest.raises(ValueError, match="no observations"):
+        fit_densities(torch.full((2, 3), float("nan")), torch.zeros(2, 3, 3), VEIL, s, s)
+
+
+SIZE, F, C = 20, 20.0, 10.0
+
+
+def _camera_at(x: float, z: float) -> np.ndarray:
+    c2w = np.zeros((3, 4))
+    c2w[:, :3] = np.eye(3)
+    c2w[0, 3], c2w[2, 3] = x, z
+    return c2w
+
+
+def test_the_table_holds_true_ranges_and_colours_and_leaves_out_hidden_views():
+    """A wall at z = -4 seen by three cameras looking along -z; the third has a near screen at
+    z = -1 in front of it (its own sparse map sees the screen), so the wall is hidden there."""
+    cams = [_camera_at(0.0, 0.0), _camera_at(0.5, 1.0), _camera_at(-0.3, 0.5)]
+    wall_depth = [4.0, 5.0, 4.5]  # z-depth of the wall from each camera
+    depths, images = [], []
+    for i, cam in enumerate(cams):
+        depth = np.zeros((SIZE, SIZE))
+        depth[2:18:3, 2:18:3] = wall_depth[i]
+        if i == 2:
+            depth[:, :] = 0.0
+            depth[1:19:2, 1:19:2] = 1.5  # the screen, 1 m in front of this camera's wall points
+        depths.append(depth)
+        images.append(np.full((SIZE, SIZE, 3), 0.1 * (i + 1)))
+    table = sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)))
+    assert table.num_points > 0
+    assert np.all(np.isnan(table.ranges[:, 2]))  # hidden behind the screen from the third view
+    seen = np.isfinite(table.ranges)
+    assert seen[:, 0].any() and seen[:, 1].any()
+    # every wall point: range from camera j = distance to the camera centre; colour = that image's value
+    for j in (0, 1):
+        rows = seen[:, j]
+        np.testing.assert_allclose(table.colours[rows, j], 0.1 * (j + 1))
+        assert np.all(table.ranges[rows, j] >= wall_depth[j] - 1e-9)
+    with pytest.raises(ValueError, match="max_points_per_view"):
+        sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)), max_points_per_view=0)
