@@ -146,16 +146,20 @@ def sfm_bounds(depths: List[np.ndarray]) -> tuple[float, float] | None:
     return (min(nears), max(fars)) if nears else None
 
 
+def world_pinholes(cameras, scene_per_world: float):
+    """``(camera_to_worlds, fx, fy, cx, cy)`` of nerfstudio's ``cameras`` as float64 arrays, the
+    poses scaled back to world units (scene units / ``scene_per_world``)."""
+    flat = lambda values: values.flatten().double().numpy()  # noqa: E731
+    camera_to_worlds = cameras.camera_to_worlds.double().numpy().copy()
+    camera_to_worlds[:, :, 3] /= scene_per_world
+    return camera_to_worlds, flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
+
+
 def sfm_range_spread(world_depths: List[np.ndarray], cameras, scene_per_world: float) -> RangeSpread:
     """:func:`range_spread` of the sparse depth maps (world units) under nerfstudio's ``cameras``
     (scene units; the pinhole part of the model), in world units: the poses are scaled back to
     world units, so no depth is converted twice."""
-    flat = lambda values: values.flatten().double().numpy()  # noqa: E731
-    camera_to_worlds = cameras.camera_to_worlds.double().numpy().copy()
-    camera_to_worlds[:, :, 3] /= scene_per_world
-    return range_spread(
-        world_depths, camera_to_worlds, flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
-    )
+    return range_spread(world_depths, *world_pinholes(cameras, scene_per_world))
 
 
 def observations_of(world_depths: List[np.ndarray], outputs: DataparserOutputs, scene_per_world: float) -> SfmObservations:
@@ -170,9 +174,4 @@ def observations_of(world_depths: List[np.ndarray], outputs: DataparserOutputs, 
         if image.shape[:2] != (height, width):
             image = cv2.resize(image, (int(width), int(height)), interpolation=cv2.INTER_AREA)
         images.append(image)
-    flat = lambda values: values.flatten().double().numpy()  # noqa: E731
-    camera_to_worlds = cameras.camera_to_worlds.double().numpy().copy()
-    camera_to_worlds[:, :, 3] /= scene_per_world
-    return sfm_observations(
-        world_depths, images, camera_to_worlds, flat(cameras.fx), flat(cameras.fy), flat(cameras.cx), flat(cameras.cy)
-    )
+    return sfm_observations(world_depths, images, *world_pinholes(cameras, scene_per_world))

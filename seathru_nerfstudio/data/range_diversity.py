@@ -45,6 +45,31 @@ class RangeSpread:
         )
 
 
+def back_project(
+    depth: npt.NDArray[np.floating], c2w: npt.NDArray[np.float64], fx: float, fy: float, cx: float, cy: float, max_points: int
+) -> npt.NDArray[np.float64]:
+    """(P, 3) world points of a z-depth map's known pixels (an evenly strided subset beyond
+    ``max_points``), for a nerfstudio/OpenGL camera-to-world ``c2w`` (3, 4); pixel centres at +0.5."""
+    depth = np.asarray(depth, dtype=np.float64)
+    v, u = np.nonzero(depth > 0)
+    stride = max(1, -(-u.size // max_points))
+    v, u = v[::stride], u[::stride]
+    z = depth[v, u]
+    camera = np.stack([(u + 0.5 - cx) / fx * z, -(v + 0.5 - cy) / fy * z, -z], axis=-1)
+    return camera @ c2w[:, :3].T + c2w[:, 3]
+
+
+def project(
+    points: npt.NDArray[np.float64], c2w: npt.NDArray[np.float64], fx: float, fy: float, cx: float, cy: float
+) -> tuple[npt.NDArray[np.float64], npt.NDArray[np.float64], npt.NDArray[np.float64]]:
+    """``(u, v, ahead)``: continuous pixel coordinates (centres at +0.5) and z-depth in front of
+    the camera (<= 0: behind it, where ``u`` and ``v`` are meaningless) of world ``points``."""
+    local = (points - c2w[:, 3]) @ c2w[:, :3]
+    ahead = -local[:, 2]
+    safe = np.where(ahead > 0, ahead, 1.0)
+    return fx * local[:, 0] / safe + cx, -fy * local[:, 1] / safe + cy, ahead
+
+
 def range_spread(
     z_depths: Sequence[npt.NDArray[np.floating]],
     camera_to_worlds: npt.NDArray[np.floating],
@@ -72,22 +97,12 @@ def range_spread(
     sizes = [np.asarray(d).shape for d in z_depths]
     per_point_ranges = []
     for i, depth in enumerate(z_depths):
-        depth = np.asarray(depth, dtype=np.float64)
-        v, u = np.nonzero(depth > 0)
-        if u.size == 0:
+        points = back_project(depth, c2w[i], fx[i], fy[i], cx[i], cy[i], max_points_per_view)
+        if len(points) == 0:
             continue
-        stride = -(-u.size // max_points_per_view)
-        v, u = v[::stride], u[::stride]
-        z = depth[v, u]
-        camera = np.stack([(u + 0.5 - cx[i]) / fx[i] * z, -(v + 0.5 - cy[i]) / fy[i] * z, -z], axis=-1)
-        points = camera @ c2w[i, :, :3].T + c2w[i, :, 3]
-        ranges = np.full((len(z_depths), z.size), np.nan)
+        ranges = np.full((len(z_depths), len(points)), np.nan)
         for j, (height, width) in enumerate(sizes):
-            local = (points - c2w[j, :, 3]) @ c2w[j, :, :3]
-            ahead = -local[:, 2]
-            safe = np.where(ahead > 0, ahead, 1.0)
-            pu = fx[j] * local[:, 0] / safe + cx[j]
-            pv = -fy[j] * local[:, 1] / safe + cy[j]
+            pu, pv, ahead = project(points, c2w[j], fx[j], fy[j], cx[j], cy[j])
             inside = (ahead > 0) & (pu >= 0) & (pu < width) & (pv >= 0) & (pv < height)
             ranges[j, inside] = np.linalg.norm(points[inside] - c2w[j, :, 3], axis=-1)
         per_point_ranges.append(ranges)

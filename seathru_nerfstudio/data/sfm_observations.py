@@ -19,6 +19,8 @@ from typing import Sequence
 import numpy as np
 import numpy.typing as npt
 
+from seathru_nerfstudio.data.range_diversity import back_project, project
+
 
 @dataclass(frozen=True)
 class SfmObservations:
@@ -83,16 +85,8 @@ def sfm_observations(
         raise ValueError(f"sfm_observations: {len(z_depths)} depth maps but {len(images)} images")
     c2w = np.asarray(camera_to_worlds, dtype=np.float64)
     depths = [np.asarray(d, dtype=np.float64) for d in z_depths]
-    points = []
-    for i, depth in enumerate(depths):
-        v, u = np.nonzero(depth > 0)
-        if u.size == 0:
-            continue
-        stride = -(-u.size // max_points_per_view)
-        v, u = v[::stride], u[::stride]
-        z = depth[v, u]
-        camera = np.stack([(u + 0.5 - cx[i]) / fx[i] * z, -(v + 0.5 - cy[i]) / fy[i] * z, -z], axis=-1)
-        points.append(camera @ c2w[i, :, :3].T + c2w[i, :, 3])
+    points = [back_project(depth, c2w[i], fx[i], fy[i], cx[i], cy[i], max_points_per_view) for i, depth in enumerate(depths)]
+    points = [p for p in points if len(p)]
     if not points:
         return SfmObservations(np.zeros((0, len(depths))), np.zeros((0, len(depths), 3)))
     xyz = np.concatenate(points)
@@ -100,11 +94,7 @@ def sfm_observations(
     colours = np.full((len(xyz), len(depths), 3), np.nan)
     for j, depth in enumerate(depths):
         height, width = depth.shape
-        local = (xyz - c2w[j, :, 3]) @ c2w[j, :, :3]
-        ahead = -local[:, 2]
-        safe = np.where(ahead > 0, ahead, 1.0)
-        pu = fx[j] * local[:, 0] / safe + cx[j]
-        pv = -fy[j] * local[:, 1] / safe + cy[j]
+        pu, pv, ahead = project(xyz, c2w[j], fx[j], fy[j], cx[j], cy[j])
         inside = (ahead > 0) & (pu >= 0.5) & (pu < width - 1.5) & (pv >= 0.5) & (pv < height - 1.5)
         rows, cols = np.floor(pv[inside]).astype(int), np.floor(pu[inside]).astype(int)
         visible = np.zeros(rows.size, dtype=bool)
