@@ -320,6 +320,7 @@ def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(viewer_pr
         assert view.click_checkbox("Water") is False
         no_water = view.wait_for_render(MAX_RES, previous=water)
         page.screenshot(path=str(tmp_path / "2-no-water.png"))
+        measured["resolution_no_water"] = view.resolution()
         measured["water_vs_no_water"] = viewer_page.mean_abs_diff(water, no_water)
 
         assert view.click_checkbox("Water") is True
@@ -329,6 +330,7 @@ def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(viewer_pr
         assert view.slider_to_min("Water density") == 0.0
         clear = view.wait_for_render(MAX_RES, previous=water_again)
         page.screenshot(path=str(tmp_path / "3-density-0.png"))
+        measured["resolution_at_density0"] = view.resolution()
         measured["density0_vs_no_water"] = viewer_page.mean_abs_diff(clear, no_water)
         measured["density0_vs_water"] = viewer_page.mean_abs_diff(clear, water_again)
 
