@@ -23,6 +23,11 @@ from jaxtyping import Float
 from torch import Tensor
 
 
+LOG_DENSITY_LIMIT = 20.7
+"""The fitted densities are clamped to ``e^{±20.7}`` ≈ 1e-9 to 1e9 per world unit: a channel the
+observations say nothing about may run off towards 0 or infinity."""
+
+
 def best_colours(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
@@ -56,7 +61,8 @@ def fit_densities(
     """``(β_D, β_B, mean squared residual)`` in 1/world unit, fitted by L-BFGS on the log-densities.
 
     ``ranges`` and ``colours`` carry NaN where a point was not observed. The starts must be
-    positive; the fit moves them in log space, so the densities stay positive."""
+    positive; the fit moves them in log space, so the densities stay positive (and within
+    :data:`LOG_DENSITY_LIMIT`)."""
     if not (torch.all(start_attenuation > 0) and torch.all(start_backscatter > 0)):
         raise ValueError("fit_densities: the starting densities must be positive")
     observed = torch.isfinite(ranges) & torch.isfinite(colours).all(dim=-1)
@@ -86,7 +92,10 @@ def fit_densities(
         return loss
 
     optimizer.step(closure)
-    densities = torch.exp(log_densities.detach())
+    if not torch.isfinite(log_densities).all():  # a diverged search: keep the start
+        log_densities = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
+    # 1e-9 to 1e9 per world unit: finite, and finite under inverse softplus
+    densities = torch.exp(log_densities.detach().clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
     with torch.no_grad():
         final = float(residual())
     return densities[:3], densities[3:], final

@@ -119,3 +119,18 @@ def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_
     # without the dataparser flag there is no table
     plain = SeathruNerfstudioDataParserConfig(data=scene).setup().get_dataparser_outputs("train").metadata
     assert SFM_OBSERVATIONS_KEY not in plain
+
+
+def test_a_channel_without_information_stays_finite_and_bounded():
+    """Black points under a black veil: nothing constrains the densities, and nothing may leave the bounds."""
+    from seathru_nerfstudio.medium_fit import LOG_DENSITY_LIMIT
+
+    ranges = torch.tensor([[1.0, 2.0], [1.5, 3.0]], dtype=torch.float64)
+    black = torch.zeros(2, 2, 3, dtype=torch.float64)
+    for start in (1e-12, 1.0, 1e12):
+        s = torch.full((3,), start, dtype=torch.float64)
+        beta_d, beta_b, residual = fit_densities(ranges, black, torch.zeros(3, dtype=torch.float64), s, s)
+        for beta in (beta_d, beta_b):
+            assert torch.isfinite(beta).all() and torch.all(beta > 0)
+            assert torch.all(beta.log().abs() <= LOG_DENSITY_LIMIT + 1e-9)
+        assert residual == 0.0
