@@ -75,8 +75,7 @@ def fit_densities(
     log_densities = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double()).requires_grad_(True)
     count = weight.sum() * 3
 
-    def residual() -> Tensor:
-        densities = torch.exp(log_densities)
+    def residual_at(densities: Tensor) -> Tensor:
         _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
         return ((predicted - rgb) ** 2 * weight[..., None]).sum() / count
 
@@ -87,7 +86,7 @@ def fit_densities(
 
     def closure() -> Tensor:
         optimizer.zero_grad()
-        loss = residual()
+        loss = residual_at(torch.exp(log_densities))
         loss.backward()
         return loss
 
@@ -97,5 +96,5 @@ def fit_densities(
     # 1e-9 to 1e9 per world unit: finite, and finite under inverse softplus
     densities = torch.exp(log_densities.detach().clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
     with torch.no_grad():
-        final = float(residual())
+        final = float(residual_at(densities))  # of the densities returned, after the clamp
     return densities[:3], densities[3:], final
