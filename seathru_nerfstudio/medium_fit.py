@@ -14,9 +14,15 @@ its range, and gradient descent on the radiance field follows that weak signal s
 22–33% high after 1500 steps, docs/benchmarks.md, session 16). Here the same information is
 fitted directly, on a few thousand numbers (L-BFGS, a second or two). The fit is only as good as the veiling light given
 to it; channels whose backscatter is tiny (small ``B∞``) leave ``β_B`` undetermined.
+
+Where a channel's ``β_D`` and ``β_B`` trade off along a valley of the residual, the fit lands
+anywhere on it, so each fitted log-density comes with a Gauss–Newton standard error (see
+:func:`log_density_errors`); a caller keeps its own value where that error is large.
 """
 
 from __future__ import annotations
+
+from typing import NamedTuple
 
 import torch
 from jaxtyping import Float
@@ -50,6 +56,45 @@ def best_colours(
     return object_colour, object_colour[:, None, :] * transmittance + backscatter
 
 
+class DensityFit(NamedTuple):
+    """The fitted densities (1/world unit), the mean squared residual, and the standard errors of
+    ``ln β_D`` and ``ln β_B`` per channel (≈ relative errors; at most ``2 × LOG_DENSITY_LIMIT``)."""
+
+    attenuation: Float[Tensor, "3"]
+    backscatter: Float[Tensor, "3"]
+    residual: float
+    attenuation_log_error: Float[Tensor, "3"]
+    backscatter_log_error: Float[Tensor, "3"]
+
+
+def log_density_errors(
+    squared_error: Float[Tensor, "3"],
+    hessian: Float[Tensor, "6 6"],
+    num_points: int,
+) -> tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
+    """Standard errors of ``(ln β_D, ln β_B)`` per channel from the curvature of the residual.
+
+    ``squared_error[c]`` is channel c's sum of squared residuals ``S_c`` at the fit and
+    ``hessian`` the Hessian of ``Σ_c S_c`` in ``(ln β_D, ln β_B)`` (block-diagonal: the channels
+    do not interact). Gauss–Newton gives ``cov_c = 2 σ_c² H_c⁻¹`` (``H = 2 JᵀJ``). A point's
+    residuals across its views share its errors (its colour, its position), so ``σ_c² = S_c /
+    num_points``: one independent residual per point, not per observation. A block that is not
+    positive definite (a flat direction) gets the largest error, ``2 × LOG_DENSITY_LIMIT``."""
+    worst = 2 * LOG_DENSITY_LIMIT
+    attenuation_error = torch.full((3,), worst, dtype=torch.float64)
+    backscatter_error = attenuation_error.clone()
+    for c in range(3):
+        block = hessian[[c, c + 3]][:, [c, c + 3]].double()
+        determinant = block[0, 0] * block[1, 1] - block[0, 1] ** 2
+        if not (torch.isfinite(block).all() and block[0, 0] > 0 and determinant > 0) or num_points < 1:
+            continue
+        inverse_diagonal = torch.stack([block[1, 1], block[0, 0]]) / determinant
+        variance = 2.0 * squared_error[c].double() / num_points * inverse_diagonal
+        errors = torch.sqrt(torch.clamp(variance, min=0.0)).clamp(max=worst)
+        attenuation_error[c], backscatter_error[c] = errors[0], errors[1]
+    return attenuation_error, backscatter_error
+
+
 def fit_densities(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
@@ -57,8 +102,9 @@ def fit_densities(
     start_attenuation: Float[Tensor, "3"],
     start_backscatter: Float[Tensor, "3"],
     max_iterations: int = 200,
-) -> tuple[Float[Tensor, "3"], Float[Tensor, "3"], float]:
-    """``(β_D, β_B, mean squared residual)`` in 1/world unit, fitted by L-BFGS on the log-densities.
+) -> DensityFit:
+    """``β_D, β_B`` in 1/world unit, fitted by L-BFGS on the log-densities, with the mean squared
+    residual and the standard errors of the log-densities (:func:`log_density_errors`).
 
     ``ranges`` and ``colours`` carry NaN where a point was not observed. The starts must be
     positive; the fit moves them in log space, so the densities stay positive (and within
@@ -97,4 +143,15 @@ def fit_densities(
     densities = torch.exp(log_densities.detach().clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
     with torch.no_grad():
         final = float(residual_at(densities))  # of the densities returned, after the clamp
-    return densities[:3], densities[3:], final
+
+    def squared_error_at(log_values: Tensor) -> Tensor:  # per channel, summed over observations
+        _, predicted = best_colours(z, rgb, weight, torch.exp(log_values[:3]), torch.exp(log_values[3:]), veil)
+        return ((predicted - rgb) ** 2 * weight[..., None]).sum(dim=(0, 1))
+
+    log_fitted = torch.log(densities)
+    hessian = torch.autograd.functional.hessian(lambda v: squared_error_at(v).sum(), log_fitted)
+    with torch.no_grad():
+        squared_error = squared_error_at(log_fitted)
+    num_points = int((observed.sum(dim=1) >= 2).sum())  # a point seen once says nothing about the medium
+    errors = log_density_errors(squared_error, hessian, num_points)
+    return DensityFit(densities[:3], densities[3:], final, *errors)

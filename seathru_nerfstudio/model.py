@@ -214,6 +214,11 @@ class SeathruModelConfig(NerfactoModelConfig):
     densities to their fit to the SfM points' colours across views, given the veiling light
     learned by then (:mod:`seathru_nerfstudio.medium_fit`). Needs ``medium_scope scene`` and the
     dataparser's ``--sfm-observations True``. ``None``: off (docs/benchmarks.md, session 17)."""
+    medium_fit_max_log_error: float = 0.1
+    """``medium_fit_step``: a channel keeps its trained densities where the fit's standard error
+    of ``ln β_D`` is above this (0.1: about 10%, half the error we accept). On turbid's green the
+    fitted β_D was 41% low, with an error of 0.157; every other channel of the three demos, 0.03-0.07
+    (docs/benchmarks.md, session 18)."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour
@@ -289,9 +294,11 @@ class SeathruModelConfig(NerfactoModelConfig):
             )
         if self.medium_fit_step is not None and (self.medium_scope != "scene" or self.medium_oracle is not None):
             raise ValueError(
-                "seathru: medium_fit_step fits the nine constants of one water body: it needs medium_scope "
+                "seathru: medium_fit_step fits the densities of one water body: it needs medium_scope "
                 f"scene and no medium_oracle (got medium_scope {self.medium_scope!r}, medium_oracle {self.medium_oracle})"
             )
+        if not self.medium_fit_max_log_error > 0:  # NaN fails too
+            raise ValueError(f"seathru: medium_fit_max_log_error must be > 0 (got {self.medium_fit_max_log_error})")
         if self.predict_normals:
             raise ValueError(
                 "seathru: predict_normals=True is not supported: SeathruModel renders no normals, so "
@@ -523,9 +530,10 @@ class SeathruModel(NerfactoModel):
         with torch.no_grad():
             densities = torch.nn.functional.softplus(medium.density_raw.double()) * self.world_scale
             veil = torch.sigmoid(medium.rgb_logit.double())
-        beta_d, beta_b, residual = fit_densities(
-            torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:]
-        )
+        fit = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:])
+        uncertain = fit.attenuation_log_error > self.config.medium_fit_max_log_error
+        beta_d = torch.where(uncertain, densities[:3], fit.attenuation)
+        beta_b = torch.where(uncertain, densities[3:], fit.backscatter)
         fitted = torch.cat([beta_d, beta_b]) / self.world_scale
         with torch.no_grad():
             medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
@@ -534,8 +542,10 @@ class SeathruModel(NerfactoModel):
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations[/] "
-            f"(residual {residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
-            f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}"
+            f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
+            f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
+            f"standard error of ln beta_D {show(fit.attenuation_log_error)}"
+            + (f", kept the trained values of channel(s) {uncertain.nonzero().flatten().tolist()}" if uncertain.any() else "")
         )
 
     def _decide_medium_model(self, step: int, optimizers: Optional[Optimizers] = None) -> None:

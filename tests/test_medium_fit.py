@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from seathru_nerfstudio.data.sfm_observations import sfm_observations
-from seathru_nerfstudio.medium_fit import best_colours, fit_densities
+from seathru_nerfstudio.medium_fit import LOG_DENSITY_LIMIT, best_colours, fit_densities, log_density_errors
 
 BETA_D = torch.tensor([1.3, 1.2, 0.9], dtype=torch.float64)
 BETA_B = torch.tensor([0.95, 0.85, 0.7], dtype=torch.float64)
@@ -40,7 +40,7 @@ def test_the_fit_recovers_the_medium_from_either_side():
     ranges, images, _ = _observations()
     for start in (0.5, 2.5):
         s = torch.full((3,), start, dtype=torch.float64)
-        beta_d, beta_b, residual = fit_densities(ranges, images, VEIL, s, s)
+        beta_d, beta_b, residual, _, _ = fit_densities(ranges, images, VEIL, s, s)
         torch.testing.assert_close(beta_d, BETA_D, rtol=0.02, atol=0)
         torch.testing.assert_close(beta_b, BETA_B, rtol=0.05, atol=0)
         assert residual < 1e-9
@@ -49,11 +49,12 @@ def test_the_fit_recovers_the_medium_from_either_side():
 def test_a_wrong_veil_moves_the_fit_and_extreme_inputs_stay_finite():
     ranges, images, _ = _observations()
     s = torch.full((3,), 1.0, dtype=torch.float64)
-    beta_d, _, residual = fit_densities(ranges, images, VEIL * 1.3, s, s)
+    beta_d, _, residual, _, _ = fit_densities(ranges, images, VEIL * 1.3, s, s)
     assert residual > 1e-7 and not torch.allclose(beta_d, BETA_D, rtol=0.02)
     huge = torch.full((2, 3), 1e30, dtype=torch.float64)
-    beta_d, beta_b, residual = fit_densities(huge, torch.ones(2, 3, 3, dtype=torch.float64), VEIL, s, s, max_iterations=5)
-    assert torch.isfinite(beta_d).all() and torch.isfinite(beta_b).all() and np.isfinite(residual)
+    fit = fit_densities(huge, torch.ones(2, 3, 3, dtype=torch.float64), VEIL, s, s, max_iterations=5)
+    assert all(torch.isfinite(v).all() for v in (fit.attenuation, fit.backscatter, fit.attenuation_log_error, fit.backscatter_log_error))
+    assert np.isfinite(fit.residual)
     with pytest.raises(ValueError, match="positive"):
         fit_densities(ranges, images, VEIL, -s, s)
     with pytest.raises(ValueError, match="no observations"):
@@ -113,7 +114,7 @@ def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_
     table = parser.get_dataparser_outputs("train").metadata[SFM_OBSERVATIONS_KEY]
     assert table.num_points > 500 and table.num_observations > 4 * table.num_points
     start = torch.full((3,), 1.9, dtype=torch.float64)
-    beta_d, _, _ = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), torch.tensor(truth["B_inf"]), start, start)
+    beta_d = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), torch.tensor(truth["B_inf"]), start, start).attenuation
     error = (beta_d / torch.tensor(truth["beta_D"]) - 1).abs()
     assert torch.all(error < 0.3), (beta_d, truth["beta_D"])
     # without the dataparser flag there is no table
@@ -123,14 +124,54 @@ def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_
 
 def test_a_channel_without_information_stays_finite_and_bounded():
     """Black points under a black veil: nothing constrains the densities, and nothing may leave the bounds."""
-    from seathru_nerfstudio.medium_fit import LOG_DENSITY_LIMIT
-
     ranges = torch.tensor([[1.0, 2.0], [1.5, 3.0]], dtype=torch.float64)
     black = torch.zeros(2, 2, 3, dtype=torch.float64)
     for start in (1e-12, 1.0, 1e12):
         s = torch.full((3,), start, dtype=torch.float64)
-        beta_d, beta_b, residual = fit_densities(ranges, black, torch.zeros(3, dtype=torch.float64), s, s)
+        beta_d, beta_b, residual, error_d, error_b = fit_densities(ranges, black, torch.zeros(3, dtype=torch.float64), s, s)
+        assert torch.all(error_d == 2 * LOG_DENSITY_LIMIT) and torch.all(error_b == 2 * LOG_DENSITY_LIMIT)  # flat: no information
         for beta in (beta_d, beta_b):
             assert torch.isfinite(beta).all() and torch.all(beta > 0)
             assert torch.all(beta.log().abs() <= LOG_DENSITY_LIMIT + 1e-9)
         assert residual == 0.0
+
+
+def test_the_standard_errors_follow_gauss_newton():
+    """``cov_c = 2 S_c / num_points · H_c⁻¹`` on a hand-made curvature: channel 0 has
+    ``H = [[4, 1], [1, 2]]`` (inverse diagonal 2/7, 4/7), channel 1 a flat direction (the largest
+    error), channel 2 a diagonal ``H``."""
+    hessian = torch.zeros(6, 6, dtype=torch.float64)
+    hessian[0, 0], hessian[3, 3], hessian[0, 3], hessian[3, 0] = 4.0, 2.0, 1.0, 1.0
+    hessian[1, 1], hessian[4, 4], hessian[1, 4], hessian[4, 1] = 1.0, 1.0, 1.0, 1.0  # singular
+    hessian[2, 2], hessian[5, 5] = 8.0, 0.5
+    squared = torch.tensor([0.7, 1.0, 0.2], dtype=torch.float64)
+    error_d, error_b = log_density_errors(squared, hessian, num_points=10)
+    torch.testing.assert_close(error_d[0], torch.sqrt(torch.tensor(2 * 0.07 * 2 / 7, dtype=torch.float64)))
+    torch.testing.assert_close(error_b[0], torch.sqrt(torch.tensor(2 * 0.07 * 4 / 7, dtype=torch.float64)))
+    assert error_d[1] == error_b[1] == 2 * LOG_DENSITY_LIMIT
+    torch.testing.assert_close(error_d[2], torch.sqrt(torch.tensor(2 * 0.02 / 8, dtype=torch.float64)))
+    torch.testing.assert_close(error_b[2], torch.sqrt(torch.tensor(2 * 0.02 / 0.5, dtype=torch.float64)))
+    assert torch.all(log_density_errors(squared, hessian, num_points=0)[0] == 2 * LOG_DENSITY_LIMIT)
+
+
+def test_the_errors_shrink_with_more_points_and_grow_without_range_spread():
+    """Noisy observations: twice the points (the same ones again) give errors smaller by √2
+    (the residual and the curvature double); the spread of the fit over noise draws is within the
+    predicted error; points that keep one range in every view leave β_D undetermined."""
+    ranges, images, _ = _observations(num_points=400)
+    s = torch.full((3,), 1.0, dtype=torch.float64)
+    fits = []
+    for seed in range(8):
+        noise = 0.01 * torch.randn(images.shape, generator=torch.Generator().manual_seed(seed), dtype=torch.float64)
+        fits.append(fit_densities(ranges, (images + noise).clamp(min=0), VEIL, s, s))
+    fit = fits[0]
+    noisy = (images + 0.01 * torch.randn(images.shape, generator=torch.Generator().manual_seed(0), dtype=torch.float64)).clamp(min=0)
+    doubled = fit_densities(torch.cat([ranges, ranges]), torch.cat([noisy, noisy]), VEIL, s, s)
+    torch.testing.assert_close(doubled.attenuation_log_error * 2**0.5, fit.attenuation_log_error, rtol=1e-3, atol=0)
+    spread = torch.stack([f.attenuation.log() for f in fits]).std(dim=0)
+    assert torch.all(spread < fit.attenuation_log_error), (spread, fit.attenuation_log_error)
+    assert torch.all(spread > fit.attenuation_log_error / 10)  # conservative (views share a point's error), not vacuous
+    flat = torch.nan_to_num(ranges, nan=0.0)[:, :1].expand_as(ranges).clone()
+    flat[torch.isnan(ranges)] = float("nan")
+    one_range = fit_densities(flat, images, VEIL, s, s)
+    assert torch.all(one_range.attenuation_log_error > 10 * fit.attenuation_log_error), one_range.attenuation_log_error

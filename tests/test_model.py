@@ -789,5 +789,12 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations()
     m._fit_medium(step=9)
     sigma = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
     torch.testing.assert_close(sigma * 2.0, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
+    # a fit whose errors exceed the bound keeps the trained densities, channel by channel
+    strict = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_max_log_error=1e-12)
+    kept = strict.medium_field.density_raw.detach().clone()
+    strict._fit_medium(step=9)
+    torch.testing.assert_close(strict.medium_field.density_raw.detach(), kept)
+    with pytest.raises(ValueError, match="medium_fit_max_log_error"):
+        tiny_model(medium_fit_max_log_error=float("nan"))
     with pytest.raises(ValueError, match="medium_fit_step"):
         tiny_model(metadata={SCALE_KEY: 2.0}, medium_fit_step=10, medium_scope="ray")
