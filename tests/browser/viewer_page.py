@@ -6,6 +6,12 @@ we launch the system chromium).
 
 Waits are Playwright's own (locators and ``expect`` wait until their condition holds); only the
 rendered image, which lives in a WebGL canvas and not in the page's DOM, is polled by screenshot.
+
+Two records of a render: the screenshot (what the user sees) and the image the browser received
+(viser's ``BackgroundImageMessage`` on the websocket, decoded). Screenshots of one and the same
+received image differ from capture to capture by up to 1.9 grey levels on average (session 18:
+the server's images compared equal while the screenshots did not), so equality of two renders is
+asserted on the received images, and the screenshots show that the canvas changes.
 """
 
 from __future__ import annotations
@@ -94,12 +100,32 @@ def mean_abs_diff(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.abs(a.astype(np.float64) - b.astype(np.float64)).mean())
 
 
+def background_images(frame: bytes) -> list:
+    """The background images (RGB uint8) in one viser websocket frame: a msgpack message, or a
+    tuple of them (client API 1)."""
+    import msgspec
+
+    decoded = msgspec.msgpack.decode(frame)
+    messages = decoded if isinstance(decoded, (list, tuple)) else [decoded]
+    return [
+        decode_png(m["rgb_bytes"])
+        for m in messages
+        if isinstance(m, dict) and m.get("type") == "BackgroundImageMessage" and m.get("media_type") == "image/png"
+    ]
+
+
 class ViewerPage:
-    """nerfstudio's viewer page: its GUI controls and the rendered image."""
+    """nerfstudio's viewer page: its GUI controls, the rendered image, and the images received."""
 
     def __init__(self, page, url: str) -> None:
         self.page = page
         self.url = url
+        self.received: list = []  # every background image the page was sent, in order
+        page.on("websocket", lambda socket: socket.on("framereceived", self._record))
+
+    def _record(self, payload) -> None:
+        if isinstance(payload, (bytes, bytearray)):
+            self.received.extend(background_images(bytes(payload)))
 
     def open(self, timeout: float = 120.0) -> None:
         self.page.goto(self.url, wait_until="domcontentloaded", timeout=timeout * 1000)
@@ -245,3 +271,10 @@ class ViewerPage:
             last = shot
             self.page.wait_for_timeout(250)  # screenshot poll interval
         raise TimeoutError(f"no new {max_res}px render within {timeout:.0f} s (resolution {self.resolution()})")
+
+    def last_received(self, max_res: int) -> np.ndarray:
+        """The last image the page was sent, which must be a full-resolution one (larger side ``max_res``)."""
+        assert self.received, "the page received no background image (png) over the websocket"
+        image = self.received[-1]
+        assert max(image.shape[:2]) == max_res, f"the last image received is {image.shape[1]}x{image.shape[0]}"
+        return image
