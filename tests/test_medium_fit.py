@@ -97,6 +97,11 @@ def test_the_table_holds_true_ranges_and_colours_and_leaves_out_hidden_views():
         assert np.all(table.ranges[rows, j] >= wall_depth[j] - 1e-9)
     with pytest.raises(ValueError, match="max_points_per_view"):
         sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)), max_points_per_view=0)
+    # many views: fewer points from each (here 6 in all over 3 views, 2 from each, at most)
+    capped = sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)), max_points=6)
+    assert 0 < capped.num_points <= 6 < table.num_points
+    with pytest.raises(ValueError, match="max_points"):
+        sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)), max_points=0)
 
 
 def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_path):

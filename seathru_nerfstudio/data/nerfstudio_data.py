@@ -24,7 +24,7 @@ from __future__ import annotations
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Dict, List, Type
+from typing import Dict, List, Sequence, Type
 
 import cv2
 import numpy as np
@@ -162,16 +162,26 @@ def sfm_range_spread(world_depths: List[np.ndarray], cameras, scene_per_world: f
     return range_spread(world_depths, *world_pinholes(cameras, scene_per_world))
 
 
-def observations_of(world_depths: List[np.ndarray], outputs: DataparserOutputs, scene_per_world: float) -> SfmObservations:
-    """:func:`sfm_observations` of the sparse depth maps (world units) and the split's images
-    (resized to the cameras' size), under nerfstudio's cameras scaled back to world units."""
-    cameras = outputs.cameras
-    images = []
-    for path, height, width in zip(
-        outputs.image_filenames, cameras.height.flatten().tolist(), cameras.width.flatten().tolist()
-    ):
-        image = read_linear_image(path)[..., :3]
+class _ImagesAtCameraSize(Sequence):
+    """The split's linear images (RGB), read when indexed and resized to the cameras' size: the
+    observation table needs one at a time, and a capture's images may not fit in memory together."""
+
+    def __init__(self, outputs: DataparserOutputs) -> None:
+        self.paths = list(outputs.image_filenames)
+        self.sizes = list(zip(outputs.cameras.height.flatten().tolist(), outputs.cameras.width.flatten().tolist()))
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, index: int) -> np.ndarray:
+        height, width = self.sizes[index]
+        image = read_linear_image(self.paths[index])[..., :3]
         if image.shape[:2] != (height, width):
             image = cv2.resize(image, (int(width), int(height)), interpolation=cv2.INTER_AREA)
-        images.append(image)
-    return sfm_observations(world_depths, images, *world_pinholes(cameras, scene_per_world))
+        return image
+
+
+def observations_of(world_depths: List[np.ndarray], outputs: DataparserOutputs, scene_per_world: float) -> SfmObservations:
+    """:func:`sfm_observations` of the sparse depth maps (world units) and the split's images
+    (resized to the cameras' size, read one at a time), under nerfstudio's cameras scaled back to world units."""
+    return sfm_observations(world_depths, _ImagesAtCameraSize(outputs), *world_pinholes(outputs.cameras, scene_per_world))

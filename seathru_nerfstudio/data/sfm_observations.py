@@ -64,6 +64,7 @@ def sfm_observations(
     max_points_per_view: int = 500,
     window: int = 2,
     depth_tolerance: float = 0.03,
+    max_points: int = 20000,
 ) -> SfmObservations:
     """The observation table of the sparse depth maps' points.
 
@@ -75,12 +76,17 @@ def sfm_observations(
         max_points_per_view: an evenly strided subset of each view's points beyond this many.
         window: a projection is visible if the view's sparse map has a point within this many pixels...
         depth_tolerance: ...whose z-depth matches the projection's to this fraction.
+        max_points: fewer points per view where the views are many: the table is dense
+            (points × views), 20000 points × 200 views is 130 MB.
+
+    ``images`` is read one view at a time (``images[j]``), so it may load lazily.
     """
-    if max_points_per_view < 1 or window < 0 or not depth_tolerance > 0:
+    if max_points_per_view < 1 or max_points < 1 or window < 0 or not depth_tolerance > 0:
         raise ValueError(
-            f"sfm_observations: need max_points_per_view >= 1, window >= 0, depth_tolerance > 0; got "
-            f"{max_points_per_view}, {window}, {depth_tolerance}"
+            f"sfm_observations: need max_points_per_view >= 1, max_points >= 1, window >= 0, depth_tolerance > 0; "
+            f"got {max_points_per_view}, {max_points}, {window}, {depth_tolerance}"
         )
+    max_points_per_view = max(1, min(max_points_per_view, max_points // max(1, len(z_depths))))
     if len(images) != len(z_depths):
         raise ValueError(f"sfm_observations: {len(z_depths)} depth maps but {len(images)} images")
     c2w = np.asarray(camera_to_worlds, dtype=np.float64)
