@@ -191,7 +191,7 @@ class SeathruModelConfig(NerfactoModelConfig):
     Measured in a 300-step probe (docs/benchmarks.md, session 16): on water it kept the green
     object colour alive; on fog it did not, because the first stage's veiling light (the mean
     image) is darker than the true one and the envelope's density comes out high under it."""
-    backscatter_excess_mult: float = 0.0
+    backscatter_excess_mult: float = 10.0
     """Weight of :func:`~seathru_nerfstudio.losses.backscatter_excess_loss`, the backscatter above
     the image. A starting medium whose backscatter alone is above the image kills the object
     colour in that channel (a pink ``clean`` image); this term moves the backscatter density
@@ -200,20 +200,25 @@ class SeathruModelConfig(NerfactoModelConfig):
     (else it would darken it: water demo, blue B_inf 0.25 against 0.39 by step 300). Measured
     with ``backscatter_excess_steps`` 500 against 0 (docs/benchmarks.md, session 16, one run
     each): turbid 44.7 / 18.3 dB and all 9 medium values within 20% (43.5 / 18.7, 7 of 9), water
-    43.5 / 17.6 (43.0 / 17.0), fog 40.4 / 21.5 (40.0 / 22.0). Not the default: with 10 the CI
-    decomposition test (48x36 water, 300 steps) saw its clean PSNR fall (12.9 -> 11.4 dB) where
-    it must rise. 0: off; 10 is the measured setting."""
+    43.5 / 17.6 (43.0 / 17.0), fog 40.4 / 21.5 (40.0 / 22.0). Alone it lowers the clean image of
+    the CI scene (48x36 water, 300 steps: 12.9 -> 11.3 dB): the backscatter gets right and the
+    attenuation stays high, so the errors no longer cancel. With ``medium_fit_step``, which fixes
+    the attenuation, it is the default (session 18). 0: off."""
     backscatter_excess_steps: Optional[int] = 500
     """If set, the backscatter excess loss acts only in the first this many training steps (it
     rescues a dead colour channel early); ``None``: throughout. On a flat rig the attenuation
     and the object colour trade off along a valley, and a one-sided term, however small at the
     truth, walks the medium along it: on fog with ``auto`` (tied to ``fog``) throughout, beta
     fell to 0.86 /m against 1.2 and clean to 16.6 dB (docs/benchmarks.md, session 16)."""
-    medium_fit_step: Optional[int] = None
-    """Experimental: after this training step, set the scene medium's attenuation and backscatter
-    densities to their fit to the SfM points' colours across views, given the veiling light
-    learned by then (:mod:`seathru_nerfstudio.medium_fit`). Needs ``medium_scope scene`` and the
-    dataparser's ``--sfm-observations True``. ``None``: off (docs/benchmarks.md, session 17)."""
+    medium_fit_step: Optional[int] = 500
+    """After this training step, set the scene medium's attenuation and backscatter densities to
+    their fit to the SfM points' colours across views, given the veiling light learned by then
+    (:mod:`seathru_nerfstudio.medium_fit`): gradient descent follows that weak signal slowly. Uses
+    the dataparser's SfM observation table (``--sfm-observations``, on by default); without one
+    (no SfM depth maps) the densities train on. Applies to ``medium_scope scene`` without
+    ``medium_oracle`` only. 500: after the veiling light has settled (1% on the demos; 10-30% off
+    at the end of the first stage). Session 17-18, one run each against the excess term alone:
+    water clean 23.9 against 17.6 dB, turbid 20.2 against 18.3 (docs/benchmarks.md). ``None``: off."""
     medium_fit_max_log_error: float = 0.1
     """``medium_fit_step``: a channel keeps its trained densities where the fit's standard error
     of ``ln β_D`` is above this (0.1: about 10%, half the error we accept). On turbid's green the
@@ -291,11 +296,6 @@ class SeathruModelConfig(NerfactoModelConfig):
                 "seathru: medium_model auto decides at medium_auto_decision_step "
                 f"({self.medium_auto_decision_step}), which must come after medium_first_steps "
                 f"({self.medium_first_steps}), from medium_auto_evidence_steps ({self.medium_auto_evidence_steps}) > 0 steps"
-            )
-        if self.medium_fit_step is not None and (self.medium_scope != "scene" or self.medium_oracle is not None):
-            raise ValueError(
-                "seathru: medium_fit_step fits the densities of one water body: it needs medium_scope "
-                f"scene and no medium_oracle (got medium_scope {self.medium_scope!r}, medium_oracle {self.medium_oracle})"
             )
         if not self.medium_fit_max_log_error > 0:  # NaN fails too
             raise ValueError(f"seathru: medium_fit_max_log_error must be > 0 (got {self.medium_fit_max_log_error})")
@@ -409,6 +409,13 @@ class SeathruModel(NerfactoModel):
         return "seathru" if code == UNDECIDED else MEDIUM_MODELS[code]
 
     @property
+    def fits_medium(self) -> bool:
+        """Whether ``medium_fit_step`` applies: it fits the constants of one water body, so not a
+        medium of the ray direction, nor a fixed oracle."""
+        config = self.config
+        return config.medium_fit_step is not None and config.medium_scope == "scene" and config.medium_oracle is None
+
+    @property
     def medium_blend(self) -> float:
         """How far the medium has moved from ``seathru`` to the chosen model since ``auto``
         decided: 0 -> 1 over ``medium_auto_blend_steps``; 1 without a decision to blend from,
@@ -488,7 +495,7 @@ class SeathruModel(NerfactoModel):
             self.train_step = step
 
         optimizers = getattr(training_callback_attributes, "optimizers", None)
-        if self.config.medium_fit_step is not None:  # before auto's decision at the same step
+        if self.fits_medium:  # before auto's decision at the same step
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
@@ -517,13 +524,13 @@ class SeathruModel(NerfactoModel):
     def _fit_medium(self, step: int, optimizers: Optional[Optimizers] = None) -> None:
         """``medium_fit_step``: replace the densities by their fit to the SfM observations under the
         veiling light learned so far; ``optimizers``: the trainer's, whose density state is cleared."""
-        if step + 1 != self.config.medium_fit_step:
+        if step + 1 != self.config.medium_fit_step or not self.fits_medium:
             return
         table = (self.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
         if table is None or table.num_observations == 0:
             CONSOLE.print(
                 f"[bold yellow]seathru step {step}: medium_fit_step has no SfM observations to fit "
-                "(pass --sfm-observations True to the dataparser); the densities train on"
+                "(no SfM depth maps, or the dataparser's --sfm-observations False); the densities train on"
             )
             return
         medium = self.medium_field

@@ -115,15 +115,15 @@ def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_
 
     scene = generate(SynthConfig(output_dir=tmp_path / "water", width=64, height=48, num_views=12, supersample=1, sfm_points_per_view=150))
     truth = json.loads((scene / "ground_truth" / "medium.json").read_text())
-    parser = SeathruNerfstudioDataParserConfig(data=scene, sfm_observations=True).setup()
+    parser = SeathruNerfstudioDataParserConfig(data=scene).setup()
     table = parser.get_dataparser_outputs("train").metadata[SFM_OBSERVATIONS_KEY]
     assert table.num_points > 500 and table.num_observations > 4 * table.num_points
     start = torch.full((3,), 1.9, dtype=torch.float64)
     beta_d = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), torch.tensor(truth["B_inf"]), start, start).attenuation
     error = (beta_d / torch.tensor(truth["beta_D"]) - 1).abs()
     assert torch.all(error < 0.3), (beta_d, truth["beta_D"])
-    # without the dataparser flag there is no table
-    plain = SeathruNerfstudioDataParserConfig(data=scene).setup().get_dataparser_outputs("train").metadata
+    # the table is the dataparser's default; without it there is none
+    plain = SeathruNerfstudioDataParserConfig(data=scene, sfm_observations=False).setup().get_dataparser_outputs("train").metadata
     assert SFM_OBSERVATIONS_KEY not in plain
 
 

@@ -771,7 +771,7 @@ def test_a_zero_or_non_finite_dataparser_scale_is_refused():
 
 def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations():
     """At ``medium_fit_step`` the scene medium's densities (per scene unit) become the fit (per metre)
-    divided by the scale; before that step nothing changes; a ray medium is refused."""
+    divided by the scale; before that step nothing changes; a ray medium is left alone."""
     from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
     from seathru_nerfstudio.data.sfm_observations import SfmObservations
 
@@ -796,5 +796,9 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations()
     torch.testing.assert_close(strict.medium_field.density_raw.detach(), kept)
     with pytest.raises(ValueError, match="medium_fit_max_log_error"):
         tiny_model(medium_fit_max_log_error=float("nan"))
-    with pytest.raises(ValueError, match="medium_fit_step"):
-        tiny_model(metadata={SCALE_KEY: 2.0}, medium_fit_step=10, medium_scope="ray")
+    # a medium of the ray direction is not fitted (an MLP, not constants)
+    ray = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_scope="ray")
+    assert not ray.fits_medium
+    state = {k: v.clone() for k, v in ray.state_dict().items()}
+    ray._fit_medium(step=9)
+    assert all(torch.equal(state[k], v) for k, v in ray.state_dict().items())
