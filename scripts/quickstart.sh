@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Fresh machine to a trained SeaThru-NeRF in one command (about 10 minutes of training on a 2-core CPU,
-# about 25 minutes with set-up, evaluation and four videos):
+# Fresh machine to a trained SeaThru-NeRF in one command (8-14 minutes of training on a 2-core CPU,
+# about 30 minutes with set-up, evaluation and four videos):
 # set up, write the embedded demo scene, train seathru-nerf-lite, evaluate, render videos.
 # Results: outputs/quickstart/ (see the summary printed at the end).
 set -euo pipefail
