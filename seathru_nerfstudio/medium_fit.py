@@ -88,8 +88,8 @@ def log_density_errors(
         determinant = block[0, 0] * block[1, 1] - block[0, 1] ** 2
         if not (torch.isfinite(block).all() and block[0, 0] > 0 and determinant > 0) or num_points < 1:
             continue
-        inverse_diagonal = torch.stack([block[1, 1], block[0, 0]]) / determinant
-        variance = 2.0 * squared_error[c].double() / num_points * inverse_diagonal
+        # 2 S / n · H⁻¹'s diagonal, divided last: S = 0 over a tiny determinant gives 0, never 0·inf
+        variance = 2.0 * squared_error[c].double() / num_points * torch.stack([block[1, 1], block[0, 0]]) / determinant
         errors = torch.sqrt(torch.clamp(variance, min=0.0)).clamp(max=worst)
         attenuation_error[c], backscatter_error[c] = errors[0], errors[1]
     return attenuation_error, backscatter_error
@@ -141,9 +141,6 @@ def fit_densities(
         log_densities = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
     # 1e-9 to 1e9 per world unit: finite, and finite under inverse softplus
     densities = torch.exp(log_densities.detach().clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
-    with torch.no_grad():
-        final = float(residual_at(densities))  # of the densities returned, after the clamp
-
     def squared_error_at(log_values: Tensor) -> Tensor:  # per channel, summed over observations
         _, predicted = best_colours(z, rgb, weight, torch.exp(log_values[:3]), torch.exp(log_values[3:]), veil)
         return ((predicted - rgb) ** 2 * weight[..., None]).sum(dim=(0, 1))
@@ -151,7 +148,8 @@ def fit_densities(
     log_fitted = torch.log(densities)
     hessian = torch.autograd.functional.hessian(lambda v: squared_error_at(v).sum(), log_fitted)
     with torch.no_grad():
-        squared_error = squared_error_at(log_fitted)
+        squared_error = squared_error_at(log_fitted)  # of the densities returned, after the clamp
+    final = float(squared_error.sum() / count)
     num_points = int((observed.sum(dim=1) >= 2).sum())  # a point seen once says nothing about the medium
     errors = log_density_errors(squared_error, hessian, num_points)
     return DensityFit(densities[:3], densities[3:], final, *errors)
