@@ -539,6 +539,13 @@ class SeathruModel(NerfactoModel):
             veil = torch.sigmoid(medium.rgb_logit.double())
         fit = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:])
         uncertain = fit.attenuation_log_error > self.config.medium_fit_max_log_error
+        show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+        if uncertain.all():  # nothing to replace: leave the parameters and their Adam state alone
+            CONSOLE.print(
+                f"[bold]seathru step {step}: medium fit to {table.num_observations} SfM observations kept the "
+                f"trained densities (standard error of ln beta_D {show(fit.attenuation_log_error)})"
+            )
+            return
         beta_d = torch.where(uncertain, densities[:3], fit.attenuation)
         beta_b = torch.where(uncertain, densities[3:], fit.backscatter)
         fitted = torch.cat([beta_d, beta_b]) / self.world_scale
@@ -546,7 +553,6 @@ class SeathruModel(NerfactoModel):
             medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
         if optimizers is not None and "medium_density" in optimizers.optimizers:
             optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
-        show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations[/] "
             f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
