@@ -224,6 +224,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     of ``ln β_D`` is above this (0.1: about 10%, half the error we accept). On turbid's green the
     fitted β_D was 41% low, with an error of 0.157; every other channel of the three demos, 0.03-0.07
     (docs/benchmarks.md, session 18)."""
+    medium_fit_holds: bool = False
+    """``medium_fit_step``: the channels the fit replaced keep their fitted densities for the rest
+    of training (no gradient), instead of training on from there."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour
@@ -335,6 +338,8 @@ class SeathruModel(NerfactoModel):
         decision); a buffer, so that checkpoints record the model ``auto`` chose."""
         self.register_buffer("medium_model_step", torch.tensor(-1, dtype=torch.long))
         """The step at which the blend from ``seathru`` to ``auto``'s choice starts (-1: no blend)."""
+        self.register_buffer("densities_fitted", torch.zeros(6, dtype=torch.bool))
+        """Which of ``beta_D`` (RGB) then ``beta_B`` (RGB) ``medium_fit_holds`` holds at their fit."""
         self.auto_evidence: List[MediumEvidence] = []
         """``auto``: the evidence of the steps before the decision."""
         self.first_stage_object: Optional[Dict[str, Dict[str, torch.Tensor]]] = None
@@ -400,6 +405,7 @@ class SeathruModel(NerfactoModel):
         # Checkpoints from before the medium model was recorded: the model of the config.
         state_dict.setdefault(prefix + "medium_model_code", self.medium_model_code.clone())
         state_dict.setdefault(prefix + "medium_model_step", self.medium_model_step.clone())
+        state_dict.setdefault(prefix + "densities_fitted", torch.zeros_like(self.densities_fitted))
         super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     @property
@@ -553,6 +559,8 @@ class SeathruModel(NerfactoModel):
             medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
         if optimizers is not None and "medium_density" in optimizers.optimizers:
             optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
+        if self.config.medium_fit_holds:
+            self.densities_fitted.copy_(torch.cat([~uncertain, ~uncertain]).to(self.densities_fitted.device))
         CONSOLE.print(
             f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations[/] "
             f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
@@ -747,6 +755,13 @@ class SeathruModel(NerfactoModel):
         if self.clear_air:
             return clear_medium(directions)
         learned = self.medium_field(directions)
+        if self.training and bool(self.densities_fitted.any()):  # medium_fit_holds, before any tie
+            held_attn, held_bs = self.densities_fitted[:3], self.densities_fitted[3:]
+            learned = MediumOutputs(
+                rgb=learned.rgb,
+                sigma_attn=torch.where(held_attn, learned.sigma_attn.detach(), learned.sigma_attn),
+                sigma_bs=torch.where(held_bs, learned.sigma_bs.detach(), learned.sigma_bs),
+            )
         medium = clear_medium(directions) if self.medium_model == "none" else tie(learned, self.medium_model)
         blend = self.medium_blend
         if blend < 1.0:  # auto, just after its decision

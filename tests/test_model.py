@@ -759,6 +759,22 @@ def test_densities_are_held_for_the_hold_steps_after_the_object_starts():
             assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head), step
 
 
+def test_fitted_densities_that_are_held_get_no_gradient_and_the_others_learn():
+    """``medium_fit_holds``: after the fit, the channels it replaced get no gradient in training;
+    a channel it kept (here green) trains on, as before the fit; also through a tied medium (``fog``
+    averages the six densities), where the hold acts on the parameters, not on the tied outputs."""
+    for medium_model in ("seathru", "fog"):
+        model = tiny_model(medium_first_steps=0, medium_fit_holds=True, medium_model=medium_model)
+        model.train()
+        model.train_step = 20
+        model.densities_fitted.copy_(torch.tensor([True, False, True, True, False, True]))
+        model.zero_grad()
+        out = model(rays(16, seed=3))
+        (out["rgb"].sum() + out["medium_attenuation"].sum()).backward()
+        grad = model.medium_field.density_raw.grad
+        assert (grad[[0, 2, 3, 5]] == 0).all() and (grad[[1, 4]].abs() > 0).all(), medium_model
+
+
 def test_a_zero_or_non_finite_dataparser_scale_is_refused():
     """Densities are converted to 1/m through the scale; 0 would divide by zero later, so it is refused at set-up."""
     from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
@@ -796,6 +812,14 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations()
     torch.testing.assert_close(strict.medium_field.density_raw.detach(), kept)
     with pytest.raises(ValueError, match="medium_fit_max_log_error"):
         tiny_model(medium_fit_max_log_error=float("nan"))
+    # the fitted channels train on unless held, and the hold survives a checkpoint
+    assert not m.densities_fitted.any()
+    held = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_holds=True)
+    held._fit_medium(step=9)
+    assert held.densities_fitted.all()
+    reloaded = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_holds=True)
+    reloaded.load_state_dict(held.state_dict())
+    assert reloaded.densities_fitted.all()
     # a medium of the ray direction is not fitted (an MLP, not constants)
     ray = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_scope="ray")
     assert not ray.fits_medium
