@@ -22,7 +22,7 @@ anywhere on it, so each fitted log-density comes with a Gauss–Newton standard 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import torch
 from jaxtyping import Float
@@ -54,6 +54,22 @@ def best_colours(
     denominator = (weight * transmittance**2).sum(dim=1)
     object_colour = torch.clamp(numerator / torch.clamp(denominator, min=1e-30), min=0.0)
     return object_colour, object_colour[:, None, :] * transmittance + backscatter
+
+
+Tie = Literal["seathru", "uniform", "fog"]
+"""Which densities the fit keeps equal, as the medium model that uses them: ``seathru`` none
+(six free), ``uniform`` attenuation and backscatter per channel (three), ``fog`` all six (one)."""
+
+
+def tie_matrix(tie: Tie) -> Float[Tensor, "6 K"]:
+    """0/1 matrix mapping the ``K`` free log-densities to ``(ln β_D RGB, ln β_B RGB)``."""
+    if tie == "seathru":
+        return torch.eye(6, dtype=torch.float64)
+    if tie == "uniform":
+        return torch.cat([torch.eye(3, dtype=torch.float64)] * 2)
+    if tie == "fog":
+        return torch.ones(6, 1, dtype=torch.float64)
+    raise ValueError(f"tie_matrix: unknown tie {tie!r}; expected seathru, uniform or fog")
 
 
 class DensityFit(NamedTuple):
@@ -95,6 +111,31 @@ def log_density_errors(
     return attenuation_error, backscatter_error
 
 
+def tied_log_density_errors(
+    squared_error: Float[Tensor, "3"],
+    channel_hessians: Float[Tensor, "3 K K"],
+    tie: Float[Tensor, "6 K"],
+    num_points: int,
+) -> tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
+    """:func:`log_density_errors` where channels share free log-densities (``tie``, see
+    :func:`tie_matrix`): the channels' information adds up, ``cov = (Σ_c H_c / (2 σ_c²))⁻¹`` with
+    ``σ_c² = S_c / num_points`` and ``H_c`` the Hessian of ``S_c`` in the free parameters; each
+    density gets the error of the free parameter it is. Untied, this is :func:`log_density_errors`
+    block by block. Not positive definite: every density gets ``2 × LOG_DENSITY_LIMIT``."""
+    worst = torch.full((6,), 2 * LOG_DENSITY_LIMIT, dtype=torch.float64)
+    hessians, squared = channel_hessians.double(), squared_error.double()
+    if num_points >= 1 and torch.isfinite(hessians).all() and torch.isfinite(squared).all():
+        # S_c = 0 (exact data) is floored far below any real residual: its channel then pins the fit
+        variance = torch.clamp(squared, min=1e-30 * num_points) / num_points
+        information = (hessians / (2.0 * variance[:, None, None])).sum(dim=0)
+        factor, singular = torch.linalg.cholesky_ex(information)
+        if int(singular) == 0:
+            covariance = torch.cholesky_inverse(factor)
+            per_density = torch.einsum("dk,kl,dl->d", tie.double(), covariance, tie.double())
+            worst = torch.sqrt(torch.clamp(per_density, min=0.0)).clamp(max=2 * LOG_DENSITY_LIMIT)
+    return worst[:3], worst[3:]
+
+
 def fit_densities(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
@@ -102,9 +143,12 @@ def fit_densities(
     start_attenuation: Float[Tensor, "3"],
     start_backscatter: Float[Tensor, "3"],
     max_iterations: int = 200,
+    tie: Tie = "seathru",
 ) -> DensityFit:
     """``β_D, β_B`` in 1/world unit, fitted by L-BFGS on the log-densities, with the mean squared
-    residual and the standard errors of the log-densities (:func:`log_density_errors`).
+    residual and the standard errors of the log-densities (:func:`log_density_errors`;
+    :func:`tied_log_density_errors` under a ``tie``, whose free densities start at the geometric
+    mean of their starts).
 
     ``ranges`` and ``colours`` carry NaN where a point was not observed. The starts must be
     positive; the fit moves them in log space, so the densities stay positive (and within
@@ -118,7 +162,9 @@ def fit_densities(
     z = torch.where(observed, ranges, torch.zeros_like(ranges)).double()
     rgb = torch.where(observed[..., None], colours, torch.zeros_like(colours)).double()
     veil = veil.detach().double()
-    log_densities = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double()).requires_grad_(True)
+    tied = tie_matrix(tie)
+    start_log = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
+    free = ((tied.T @ start_log) / tied.sum(dim=0)).requires_grad_(True)
     count = weight.sum() * 3
 
     def residual_at(densities: Tensor) -> Tensor:
@@ -126,19 +172,20 @@ def fit_densities(
         return ((predicted - rgb) ** 2 * weight[..., None]).sum() / count
 
     optimizer = torch.optim.LBFGS(
-        [log_densities], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-12, tolerance_change=1e-15,
+        [free], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-12, tolerance_change=1e-15,
         line_search_fn="strong_wolfe",
     )  # fmt: skip
 
     def closure() -> Tensor:
         optimizer.zero_grad()
-        loss = residual_at(torch.exp(log_densities))
+        loss = residual_at(torch.exp(tied @ free))
         loss.backward()
         return loss
 
     optimizer.step(closure)
+    log_densities = tied @ free.detach()
     if not torch.isfinite(log_densities).all():  # a diverged search: keep the start
-        log_densities = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
+        log_densities = tied @ ((tied.T @ start_log) / tied.sum(dim=0))
     # 1e-9 to 1e9 per world unit: finite, and finite under inverse softplus
     densities = torch.exp(log_densities.detach().clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
     def squared_error_at(log_values: Tensor) -> Tensor:  # per channel, summed over observations
@@ -146,10 +193,17 @@ def fit_densities(
         return ((predicted - rgb) ** 2 * weight[..., None]).sum(dim=(0, 1))
 
     log_fitted = torch.log(densities)
-    hessian = torch.autograd.functional.hessian(lambda v: squared_error_at(v).sum(), log_fitted)
     with torch.no_grad():
         squared_error = squared_error_at(log_fitted)  # of the densities returned, after the clamp
     final = float(squared_error.sum() / count)
     num_points = int((observed.sum(dim=1) >= 2).sum())  # a point seen once says nothing about the medium
-    errors = log_density_errors(squared_error, hessian, num_points)
+    if tie == "seathru":
+        hessian = torch.autograd.functional.hessian(lambda v: squared_error_at(v).sum(), log_fitted)
+        errors = log_density_errors(squared_error, hessian, num_points)
+    else:
+        free_fitted = (tied.T @ log_fitted) / tied.sum(dim=0)  # exact: tied values are equal
+        hessians = torch.stack([
+            torch.autograd.functional.hessian(lambda f, c=c: squared_error_at(tied @ f)[c], free_fitted) for c in range(3)
+        ])  # fmt: skip
+        errors = tied_log_density_errors(squared_error, hessians, tied, num_points)
     return DensityFit(densities[:3], densities[3:], final, *errors)

@@ -501,20 +501,20 @@ class SeathruModel(NerfactoModel):
             self.train_step = step
 
         optimizers = getattr(training_callback_attributes, "optimizers", None)
-        if self.fits_medium:  # before auto's decision at the same step
-            callbacks.append(
-                TrainingCallback(
-                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
-                    update_every_num_iters=1,
-                    func=lambda step: self._fit_medium(step, optimizers),
-                )
-            )
         if self.config.medium_model == "auto":
             callbacks.append(
                 TrainingCallback(
                     where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
                     update_every_num_iters=1,
                     func=lambda step: self._decide_medium_model(step, optimizers),
+                )
+            )
+        if self.fits_medium:  # after auto's decision at the same step: the fit ties as the model chosen
+            callbacks.append(
+                TrainingCallback(
+                    where_to_run=[TrainingCallbackLocation.AFTER_TRAIN_ITERATION],
+                    update_every_num_iters=1,
+                    func=lambda step: self._fit_medium(step, optimizers),
                 )
             )
 
@@ -539,11 +539,17 @@ class SeathruModel(NerfactoModel):
                 "(no SfM depth maps, or the dataparser's --sfm-observations False); the densities train on"
             )
             return
+        if self.medium_model == "none":
+            CONSOLE.print(f"[bold]seathru step {step}: no medium to fit (medium model none)")
+            return
         medium = self.medium_field
         with torch.no_grad():
             densities = torch.nn.functional.softplus(medium.density_raw.double()) * self.world_scale
             veil = torch.sigmoid(medium.rgb_logit.double())
-        fit = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:])
+        tie = {"basic": "uniform"}.get(self.medium_model, self.medium_model)  # the densities the model renders equal
+        fit = fit_densities(
+            torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:], tie=tie
+        )
         uncertain = fit.attenuation_log_error > self.config.medium_fit_max_log_error
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         if uncertain.all():  # nothing to replace: leave the parameters and their Adam state alone
@@ -562,7 +568,7 @@ class SeathruModel(NerfactoModel):
         if self.config.medium_fit_holds:
             self.densities_fitted.copy_(torch.cat([~uncertain, ~uncertain]).to(self.densities_fitted.device))
         CONSOLE.print(
-            f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations[/] "
+            f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({tie})[/] "
             f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
             f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
             f"standard error of ln beta_D {show(fit.attenuation_log_error)}"

@@ -7,7 +7,14 @@ import pytest
 import torch
 
 from seathru_nerfstudio.data.sfm_observations import sfm_observations
-from seathru_nerfstudio.medium_fit import LOG_DENSITY_LIMIT, best_colours, fit_densities, log_density_errors
+from seathru_nerfstudio.medium_fit import (
+    LOG_DENSITY_LIMIT,
+    best_colours,
+    fit_densities,
+    log_density_errors,
+    tie_matrix,
+    tied_log_density_errors,
+)
 
 BETA_D = torch.tensor([1.3, 1.2, 0.9], dtype=torch.float64)
 BETA_B = torch.tensor([0.95, 0.85, 0.7], dtype=torch.float64)
@@ -180,3 +187,49 @@ def test_the_errors_shrink_with_more_points_and_grow_without_range_spread():
     flat[torch.isnan(ranges)] = float("nan")
     one_range = fit_densities(flat, images, VEIL, s, s)
     assert torch.all(one_range.attenuation_log_error > 10 * fit.attenuation_log_error), one_range.attenuation_log_error
+
+
+def _images_under(ranges, colour, beta_d, beta_b):
+    return colour[:, None, :] * torch.exp(-beta_d * ranges[..., None]) + VEIL * -torch.expm1(-beta_b * ranges[..., None])
+
+
+def test_a_tied_fit_recovers_a_tied_medium_and_keeps_its_densities_equal():
+    """``fog``: one density for all six; ``uniform``: attenuation = backscatter per channel."""
+    ranges, _, colour = _observations()
+    s_d, s_b = torch.tensor([2.0, 1.5, 0.6], dtype=torch.float64), torch.tensor([0.8, 1.1, 1.7], dtype=torch.float64)
+    grey = torch.full((3,), 1.2, dtype=torch.float64)
+    fog = fit_densities(ranges, _images_under(ranges, colour, grey, grey), VEIL, s_d, s_b, tie="fog")
+    torch.testing.assert_close(fog.attenuation, grey, rtol=1e-4, atol=0)
+    torch.testing.assert_close(fog.backscatter, grey, rtol=1e-4, atol=0)
+    per_channel = torch.tensor([1.3, 1.0, 0.7], dtype=torch.float64)
+    uniform = fit_densities(ranges, _images_under(ranges, colour, per_channel, per_channel), VEIL, s_d, s_b, tie="uniform")
+    torch.testing.assert_close(uniform.attenuation, per_channel, rtol=1e-4, atol=0)
+    assert torch.equal(uniform.attenuation, uniform.backscatter)
+    # water is not grey: tied, the fit cannot reach it, and says so through its residual
+    water = _images_under(ranges, colour, BETA_D, BETA_B)
+    assert fit_densities(ranges, water, VEIL, s_d, s_b, tie="fog").residual > 100 * fit_densities(ranges, water, VEIL, s_d, s_b).residual + 1e-12
+    with pytest.raises(ValueError, match="tie"):
+        tie_matrix("final")
+
+
+def test_tied_errors_add_the_channels_information_and_reduce_to_the_block_formula():
+    """Untied (the identity), the tied formula is :func:`log_density_errors` block by block. Tied to one
+    parameter with the same curvature in every channel, the information adds up: the error is the
+    single-channel error over √3; the six densities share it."""
+    blocks = [torch.tensor([[4.0, 1.0], [1.0, 2.0]]), torch.tensor([[3.0, -0.5], [-0.5, 1.0]]), torch.tensor([[8.0, 0.0], [0.0, 0.5]])]
+    squared = torch.tensor([0.7, 0.3, 0.2], dtype=torch.float64)
+    channel_hessians = torch.zeros(3, 6, 6, dtype=torch.float64)
+    for c, block in enumerate(blocks):
+        channel_hessians[c][[[c], [c + 3]], [c, c + 3]] = block.double()
+    block_errors = log_density_errors(squared, channel_hessians.sum(dim=0), num_points=10)
+    tied_errors = tied_log_density_errors(squared, channel_hessians, tie_matrix("seathru"), num_points=10)
+    for block_error, tied_error in zip(block_errors, tied_errors):
+        torch.testing.assert_close(tied_error, block_error)
+    one = torch.full((3, 1, 1), 5.0, dtype=torch.float64)
+    same = torch.full((3,), 0.4, dtype=torch.float64)
+    error_d, error_b = tied_log_density_errors(same, one, tie_matrix("fog"), num_points=10)
+    single = torch.sqrt(torch.tensor(2 * 0.04 / 5.0, dtype=torch.float64))
+    torch.testing.assert_close(error_d, (single / 3**0.5).expand(3))
+    assert torch.equal(error_d, error_b)
+    flat = torch.zeros(3, 1, 1, dtype=torch.float64)  # no curvature: undetermined
+    assert torch.all(tied_log_density_errors(same, flat, tie_matrix("fog"), num_points=10)[0] == 2 * LOG_DENSITY_LIMIT)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import dataclasses
 
 import pytest
+import numpy as np
 import torch
 
 from nerfstudio.data.scene_box import SceneBox
@@ -410,3 +411,32 @@ def test_the_prior_takes_its_early_weight_before_the_early_steps_and_its_full_we
     torch.testing.assert_close(
         losses["binary_prior_loss"], 1e-3 * binary_transmittance_loss(out["transmittance"], scale=0.1, empty_weight=6.0)
     )
+
+
+def test_auto_decides_before_the_medium_fit_of_the_same_step_so_the_fit_ties_as_chosen():
+    """At step 40 ``auto`` chooses ``fog`` from grey evidence; the fit that follows in the same
+    step's callbacks then fits one density for all six (``medium_fit_step``), although the
+    observations' own medium is not grey (fitted first, the six would differ)."""
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
+    from seathru_nerfstudio.data.sfm_observations import SfmObservations
+
+    rng = np.random.default_rng(1)
+    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
+    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
+    model = tiny_model(
+        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
+        medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_fit_step=40,
+    )  # fmt: skip
+    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
+    colour = rng.uniform(0.1, 1.0, (200, 1, 3))
+    beta_d, beta_b = np.array([1.3, 1.2, 0.9]), np.array([0.95, 0.85, 0.7])  # not grey: untied, six values
+    table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
+    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
+    feed_evidence(model, evidence(share=0.3, beta_D=(1.2,) * 3, beta_B=(1.2,) * 3, B_inf=(0.6,) * 3), range(20, 40))
+    for callback in callbacks:
+        callback.run_callback_at_location(39, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    assert model.medium_model == "fog"
+    sigma = torch.nn.functional.softplus(model.medium_field.density_raw.detach().double())
+    torch.testing.assert_close(sigma, sigma[:1].expand(6), rtol=1e-6, atol=0)
