@@ -217,16 +217,23 @@ class SeathruModelConfig(NerfactoModelConfig):
     the dataparser's SfM observation table (``--sfm-observations``, on by default); without one
     (no SfM depth maps) the densities train on. Applies to ``medium_scope scene`` without
     ``medium_oracle`` only. 500: after the veiling light has settled (1% on the demos; 10-30% off
-    at the end of the first stage). Session 17-18, one run each against the excess term alone:
+    at the end of the first stage). The densities are fitted tied as the model in use renders them
+    (``auto`` decides first at the same step): ``fog`` one density, ``uniform`` one per channel;
+    ``none`` is not fitted. Session 17-18, one run each against the excess term alone:
     water clean 23.9 against 17.6 dB, turbid 20.2 against 18.3 (docs/benchmarks.md). ``None``: off."""
     medium_fit_max_log_error: float = 0.1
     """``medium_fit_step``: a channel keeps its trained densities where the fit's standard error
     of ``ln β_D`` is above this (0.1: about 10%, half the error we accept). On turbid's green the
     fitted β_D was 41% low, with an error of 0.157; every other channel of the three demos, 0.03-0.07
     (docs/benchmarks.md, session 18)."""
-    medium_fit_holds: bool = False
+    medium_fit_holds: bool = True
     """``medium_fit_step``: the channels the fit replaced keep their fitted densities for the rest
-    of training (no gradient), instead of training on from there."""
+    of training (no gradient); a channel it kept trains on. Off, they train on from the fit, and
+    the young object field's errors move them: the fit clears their Adam state, so its first steps
+    are full steps (water: blue beta_D 0.97 -> 1.03 /m within 100 steps, which alone caps the clean
+    image at 27 dB). Measured (docs/benchmarks.md, session 19, one run each, 1500 iterations):
+    water clean 25.3 against 23.9 dB, turbid 20.3 against 20.2, fog 22.2 against 20.4 (with the
+    tied fit; session 17's fog without either)."""
     medium_density_hold_steps: int = 0
     """Diagnostic: for this many steps after the object field starts (after ``medium_first_steps``),
     the attenuation and backscatter densities are held (no gradient) while the young object colour

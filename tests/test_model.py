@@ -810,14 +810,16 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations()
     kept = strict.medium_field.density_raw.detach().clone()
     strict._fit_medium(step=9)
     torch.testing.assert_close(strict.medium_field.density_raw.detach(), kept)
+    assert not strict.densities_fitted.any()  # what the fit kept trains on
     with pytest.raises(ValueError, match="medium_fit_max_log_error"):
         tiny_model(medium_fit_max_log_error=float("nan"))
-    # the fitted channels train on unless held, and the hold survives a checkpoint
-    assert not m.densities_fitted.any()
-    held = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_holds=True)
-    held._fit_medium(step=9)
-    assert held.densities_fitted.all()
-    reloaded = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_holds=True)
+    # the fitted channels are held (the default), or train on; the hold survives a checkpoint
+    assert m.densities_fitted.all()
+    free = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_holds=False)
+    free._fit_medium(step=9)
+    assert not free.densities_fitted.any()
+    held = m
+    reloaded = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10)
     reloaded.load_state_dict(held.state_dict())
     assert reloaded.densities_fitted.all()
     # the fit ties the densities as the medium model in use renders them; clear air has none to fit
