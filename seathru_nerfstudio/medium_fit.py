@@ -15,6 +15,9 @@ its range, and gradient descent on the radiance field follows that weak signal s
 fitted directly, on a few thousand numbers (L-BFGS, a second or two). The fit is only as good as the veiling light given
 to it; channels whose backscatter is tiny (small ``B∞``) leave ``β_B`` undetermined.
 
+A medium model that renders tied densities (``fog``: one for all six) is fitted tied (``tie``):
+the mean of six free densities is not the best single one (fog demo: 1.03 against 1.11 /m, truth 1.2).
+
 Where a channel's ``β_D`` and ``β_B`` trade off along a valley of the residual, the fit lands
 anywhere on it, so each fitted log-density comes with a Gauss–Newton standard error (see
 :func:`log_density_errors`); a caller keeps its own value where that error is large.
