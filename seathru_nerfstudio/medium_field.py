@@ -56,25 +56,38 @@ MediumModel = Literal["none", "fog", "uniform", "seathru", "basic"]
 MEDIUM_MODELS: Tuple[str, ...] = ("none", "fog", "uniform", "seathru", "basic")
 """Every medium model, the simplest first; a model's index here is what checkpoints record."""
 
-FREE_DENSITIES: Dict[str, int] = {"none": 0, "fog": 1, "uniform": 3, "seathru": 6, "basic": 3}
+def tie_matrix(model: str) -> Float[Tensor, "6 K"]:
+    """0/1 matrix from the ``K`` densities ``model`` keeps free to ``(β_D RGB, β_B RGB)``: the one
+    table of which densities a medium model keeps equal, for rendering (:func:`tie`) and for the
+    fit (:mod:`seathru_nerfstudio.medium_fit`). ``seathru`` six free, ``uniform`` and ``basic`` one
+    per channel, ``fog`` one for all six."""
+    if model == "seathru":
+        return torch.eye(6, dtype=torch.float64)
+    if model in ("uniform", "basic"):
+        return torch.cat([torch.eye(3, dtype=torch.float64)] * 2)
+    if model == "fog":
+        return torch.ones(6, 1, dtype=torch.float64)
+    raise ValueError(f"tie_matrix: no medium densities for model {model!r}; expected one of {MEDIUM_MODELS[1:]}")
+
+
+FREE_DENSITIES: Dict[str, int] = {"none": 0, **{model: tie_matrix(model).shape[1] for model in MEDIUM_MODELS[1:]}}
 """How many medium densities each model learns (per ray or per scene)."""
 
 
 def tie(medium: "MediumOutputs", model: str) -> "MediumOutputs":
-    """``medium`` with its densities tied as ``model`` asks, by averaging: ``fog`` gives every
-    channel of both densities the mean of the six, ``uniform`` and ``basic`` give attenuation
-    and backscatter their per-channel mean, ``seathru`` keeps them. (``none`` has no medium:
-    the model never calls this for it.) With tied inputs the result is the input."""
-    if model == "seathru":
+    """``medium`` with its densities tied as ``model`` asks (:func:`tie_matrix`), each to the
+    mean of its group: ``fog`` gives every channel of both densities the mean of the six,
+    ``uniform`` and ``basic`` give attenuation and backscatter their per-channel mean, ``seathru``
+    keeps them. (``none`` has no medium: the model never calls this for it.) With tied inputs
+    the result is the input. Elementwise products and sums, so autocast keeps the input dtype."""
+    matrix = tie_matrix(model)
+    if matrix.shape[1] == 6:
         return medium
-    if model == "fog":
-        sigma = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1).mean(dim=-1, keepdim=True)
-        sigma = sigma.expand_as(medium.sigma_attn)
-    elif model in ("uniform", "basic"):
-        sigma = 0.5 * (medium.sigma_attn + medium.sigma_bs)
-    else:
-        raise ValueError(f"tie: no medium densities for model {model!r}; expected one of {MEDIUM_MODELS[1:]}")
-    return MediumOutputs(rgb=medium.rgb, sigma_attn=sigma, sigma_bs=sigma)
+    sigma = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
+    matrix = matrix.to(sigma)
+    group_mean = (sigma[..., :, None] * matrix).sum(dim=-2) / matrix.sum(dim=0)
+    tied = (group_mean[..., None, :] * matrix).sum(dim=-1)
+    return MediumOutputs(rgb=medium.rgb, sigma_attn=tied[..., :3], sigma_bs=tied[..., 3:])
 
 
 def clear_medium(directions: Float[Tensor, "*batch 3"]) -> "MediumOutputs":

@@ -25,11 +25,13 @@ anywhere on it, so each fitted log-density comes with a Gauss–Newton standard 
 
 from __future__ import annotations
 
-from typing import Literal, NamedTuple
+from typing import NamedTuple
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
+
+from seathru_nerfstudio.medium_field import tie_matrix
 
 
 LOG_DENSITY_LIMIT = 20.7
@@ -57,22 +59,6 @@ def best_colours(
     denominator = (weight * transmittance**2).sum(dim=1)
     object_colour = torch.clamp(numerator / torch.clamp(denominator, min=1e-30), min=0.0)
     return object_colour, object_colour[:, None, :] * transmittance + backscatter
-
-
-Tie = Literal["seathru", "uniform", "fog"]
-"""Which densities the fit keeps equal, as the medium model that uses them: ``seathru`` none
-(six free), ``uniform`` attenuation and backscatter per channel (three), ``fog`` all six (one)."""
-
-
-def tie_matrix(tie: Tie) -> Float[Tensor, "6 K"]:
-    """0/1 matrix mapping the ``K`` free log-densities to ``(ln β_D RGB, ln β_B RGB)``."""
-    if tie == "seathru":
-        return torch.eye(6, dtype=torch.float64)
-    if tie == "uniform":
-        return torch.cat([torch.eye(3, dtype=torch.float64)] * 2)
-    if tie == "fog":
-        return torch.ones(6, 1, dtype=torch.float64)
-    raise ValueError(f"tie_matrix: unknown tie {tie!r}; expected seathru, uniform or fog")
 
 
 class DensityFit(NamedTuple):
@@ -146,12 +132,13 @@ def fit_densities(
     start_attenuation: Float[Tensor, "3"],
     start_backscatter: Float[Tensor, "3"],
     max_iterations: int = 200,
-    tie: Tie = "seathru",
+    tie: str = "seathru",
 ) -> DensityFit:
     """``β_D, β_B`` in 1/world unit, fitted by L-BFGS on the log-densities, with the mean squared
     residual and the standard errors of the log-densities (:func:`log_density_errors`;
-    :func:`tied_log_density_errors` under a ``tie``, whose free densities start at the geometric
-    mean of their starts).
+    :func:`tied_log_density_errors` under a ``tie``, the medium model whose tied densities are
+    fitted as one (:func:`~seathru_nerfstudio.medium_field.tie_matrix`); its free densities start
+    at the geometric mean of their starts).
 
     ``ranges`` and ``colours`` carry NaN where a point was not observed. The starts must be
     positive; the fit moves them in log space, so the densities stay positive (and within
@@ -200,7 +187,7 @@ def fit_densities(
         squared_error = squared_error_at(log_fitted)  # of the densities returned, after the clamp
     final = float(squared_error.sum() / count)
     num_points = int((observed.sum(dim=1) >= 2).sum())  # a point seen once says nothing about the medium
-    if tie == "seathru":
+    if tied.shape[1] == 6:  # untied
         hessian = torch.autograd.functional.hessian(lambda v: squared_error_at(v).sum(), log_fitted)
         errors = log_density_errors(squared_error, hessian, num_points)
     else:

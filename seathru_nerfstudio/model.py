@@ -309,6 +309,12 @@ class SeathruModelConfig(NerfactoModelConfig):
             )
         if not self.medium_fit_max_log_error > 0:  # NaN fails too
             raise ValueError(f"seathru: medium_fit_max_log_error must be > 0 (got {self.medium_fit_max_log_error})")
+        early_weight = self.binary_prior_early_mult
+        if self.binary_prior_early_steps < 0 or not (early_weight is None or early_weight >= 0):  # NaN fails too
+            raise ValueError(
+                "seathru: binary_prior_early_steps must be >= 0 and binary_prior_early_mult None or >= 0 "
+                f"(got {self.binary_prior_early_steps} and {early_weight})"
+            )
         if self.predict_normals:
             raise ValueError(
                 "seathru: predict_normals=True is not supported: SeathruModel renders no normals, so "
@@ -553,9 +559,13 @@ class SeathruModel(NerfactoModel):
         with torch.no_grad():
             densities = torch.nn.functional.softplus(medium.density_raw.double()) * self.world_scale
             veil = torch.sigmoid(medium.rgb_logit.double())
-        tie = {"basic": "uniform"}.get(self.medium_model, self.medium_model)  # the densities the model renders equal
-        fit = fit_densities(
-            torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:], tie=tie
+        fit = fit_densities(  # tied as the model renders them
+            torch.from_numpy(table.ranges),
+            torch.from_numpy(table.colours),
+            veil,
+            densities[:3],
+            densities[3:],
+            tie=self.medium_model,
         )
         uncertain = fit.attenuation_log_error > self.config.medium_fit_max_log_error
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
@@ -768,7 +778,7 @@ class SeathruModel(NerfactoModel):
         if self.clear_air:
             return clear_medium(directions)
         learned = self.medium_field(directions)
-        if self.training and bool(self.densities_fitted.any()):  # medium_fit_holds, before any tie
+        if self.training:  # medium_fit_holds, before any tie; all-False holds nothing (no host sync to ask)
             held_attn, held_bs = self.densities_fitted[:3], self.densities_fitted[3:]
             learned = MediumOutputs(
                 rgb=learned.rgb,

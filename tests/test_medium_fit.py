@@ -12,9 +12,9 @@ from seathru_nerfstudio.medium_fit import (
     best_colours,
     fit_densities,
     log_density_errors,
-    tie_matrix,
     tied_log_density_errors,
 )
+from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumOutputs, tie, tie_matrix
 
 BETA_D = torch.tensor([1.3, 1.2, 0.9], dtype=torch.float64)
 BETA_B = torch.tensor([0.95, 0.85, 0.7], dtype=torch.float64)
@@ -210,6 +210,22 @@ def test_a_tied_fit_recovers_a_tied_medium_and_keeps_its_densities_equal():
     assert fit_densities(ranges, water, VEIL, s_d, s_b, tie="fog").residual > 100 * fit_densities(ranges, water, VEIL, s_d, s_b).residual + 1e-12
     with pytest.raises(ValueError, match="tie"):
         tie_matrix("final")
+
+
+@pytest.mark.parametrize("model", MEDIUM_MODELS[1:])
+def test_every_model_is_fitted_as_it_renders(model):
+    """The fit's densities are a fixed point of the rendering's tie, for every medium model: the
+    fit and the renderer read one table (``basic`` ties as ``uniform``, with no mapping)."""
+    ranges, _, colour = _observations()
+    water = _images_under(ranges, colour, BETA_D, BETA_B)
+    start = torch.tensor([2.0, 1.5, 0.6], dtype=torch.float64), torch.tensor([0.8, 1.1, 1.7], dtype=torch.float64)
+    fit = fit_densities(ranges, water, VEIL, *start, tie=model)
+    fitted = MediumOutputs(rgb=VEIL, sigma_attn=fit.attenuation, sigma_bs=fit.backscatter)
+    rendered = tie(fitted, model)
+    torch.testing.assert_close(rendered.sigma_attn, fit.attenuation, rtol=1e-12, atol=0)
+    torch.testing.assert_close(rendered.sigma_bs, fit.backscatter, rtol=1e-12, atol=0)
+    free = len(torch.unique(torch.cat([fit.attenuation, fit.backscatter])))
+    assert free == tie_matrix(model).shape[1]  # water is not grey: each free density takes its own value
 
 
 def test_tied_errors_add_the_channels_information_and_reduce_to_the_block_formula():

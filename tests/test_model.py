@@ -838,3 +838,9 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations()
     state = {k: v.clone() for k, v in ray.state_dict().items()}
     ray._fit_medium(step=9)
     assert all(torch.equal(state[k], v) for k, v in ray.state_dict().items())
+
+
+@pytest.mark.parametrize("settings", [{"binary_prior_early_steps": -1}, {"binary_prior_early_mult": float("nan")}, {"binary_prior_early_mult": -1e-3}])
+def test_the_prior_schedule_is_checked(settings):
+    with pytest.raises(ValueError, match="binary_prior_early"):
+        tiny_model(**settings)
