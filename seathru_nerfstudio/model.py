@@ -256,16 +256,20 @@ class SeathruModelConfig(NerfactoModelConfig):
     has no medium. ``seathru``: the media models' losses."""
     rawnerf_eps: float = 1e-3
     """epsilon of the RawNeRF loss."""
-    binary_prior_mult: float = 1e-3
-    """Weight of the binary prior on the object transmittance (lambda; the paper's 1e-4 left the
-    open water filled and the surfaces half transparent on the water demo, see docs/benchmarks.md)."""
-    binary_prior_early_mult: Optional[float] = None
-    """If set, the prior's weight before ``binary_prior_early_steps`` (then ``binary_prior_mult``):
-    a weak prior while the SfM depth loss forms the geometry, so that faint far surfaces are not
-    pushed to empty before they are opaque enough for the prior to push them the other way.
-    ``None``: ``binary_prior_mult`` from the start."""
+    binary_prior_mult: float = 1e-4
+    """Weight of the binary prior on the object transmittance (lambda, the paper's 1e-4) after
+    ``binary_prior_early_steps``. From the start it let the object field fill the open water
+    before the medium fit, which then read a wrong veiling light (turbid, session 19). After the
+    fit it lets faint far surfaces stay (session 20, one run each against 1e-3 throughout: turbid
+    far-third depth 0.085 against 0.140, in-medium 45.8 against 44.8 dB; water clean 25.9 against
+    25.3 dB; docs/benchmarks.md)."""
+    binary_prior_early_mult: Optional[float] = 1e-3
+    """The prior's weight before ``binary_prior_early_steps`` (then ``binary_prior_mult``): strong,
+    so that the open water stays empty while the first stage learns the veiling light and the
+    medium fit reads it. ``None``: ``binary_prior_mult`` from the start. (Session 15 tried the
+    other way round, weak first: fog and turbid landed between their two constant weights.)"""
     binary_prior_early_steps: int = 500
-    """Training steps that use ``binary_prior_early_mult``."""
+    """Training steps that use ``binary_prior_early_mult``: by default up to ``medium_fit_step``."""
     binary_prior_scale: float = 0.1
     """Scale of the two Laplacians of the binary prior."""
     binary_prior_empty_weight: float = 6.0
