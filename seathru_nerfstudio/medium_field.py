@@ -79,14 +79,15 @@ def tie(medium: "MediumOutputs", model: str) -> "MediumOutputs":
     mean of its group: ``fog`` gives every channel of both densities the mean of the six,
     ``uniform`` and ``basic`` give attenuation and backscatter their per-channel mean, ``seathru``
     keeps them. (``none`` has no medium: the model never calls this for it.) With tied inputs
-    the result is the input. Elementwise products and sums, so autocast keeps the input dtype."""
+    the result is the input. Selections, sums and a gather (no product with the 0/1 matrix, so no
+    0·inf), all elementwise: autocast keeps the input dtype."""
     matrix = tie_matrix(model)
     if matrix.shape[1] == 6:
         return medium
     sigma = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
-    matrix = matrix.to(sigma)
-    group_mean = (sigma[..., :, None] * matrix).sum(dim=-2) / matrix.sum(dim=0)
-    tied = (group_mean[..., None, :] * matrix).sum(dim=-1)
+    member = matrix.to(device=sigma.device, dtype=torch.bool)  # (6, K)
+    group_mean = torch.where(member, sigma[..., :, None], 0).sum(dim=-2) / member.sum(dim=0)
+    tied = group_mean[..., matrix.argmax(dim=1).to(sigma.device)]  # each density takes its group's mean
     return MediumOutputs(rgb=medium.rgb, sigma_attn=tied[..., :3], sigma_bs=tied[..., 3:])
 
 

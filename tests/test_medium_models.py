@@ -131,6 +131,12 @@ def test_tie_averages_the_densities_as_each_model_asks():
     assert tie(medium, "seathru") is medium
     with pytest.raises(ValueError, match="none"):
         tie(medium, "none")
+    # an overflowed density stays in its own group: no 0*inf leaks NaN into the other channels
+    attn = medium.sigma_attn.clone().bfloat16()
+    attn[:, 0] = float("inf")
+    overflowed = tie(MediumOutputs(rgb=medium.rgb, sigma_attn=attn, sigma_bs=medium.sigma_bs.bfloat16()), "uniform")
+    assert overflowed.sigma_attn.dtype == torch.bfloat16
+    assert torch.isinf(overflowed.sigma_attn[:, 0]).all() and torch.isfinite(overflowed.sigma_attn[:, 1:]).all()
 
 
 @pytest.mark.parametrize("name", ["fog", "uniform"])
