@@ -17,6 +17,7 @@ same parameters and a switch between models keeps the medium learned so far.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Dict, Literal, Sequence, Tuple
 
@@ -81,14 +82,22 @@ def tie(medium: "MediumOutputs", model: str) -> "MediumOutputs":
     keeps them. (``none`` has no medium: the model never calls this for it.) With tied inputs
     the result is the input. Selections, sums and a gather (no product with the 0/1 matrix, so no
     0·inf), all elementwise: autocast keeps the input dtype."""
-    matrix = tie_matrix(model)
-    if matrix.shape[1] == 6:
+    if FREE_DENSITIES.get(model) == 6:
         return medium
     sigma = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
-    member = matrix.to(device=sigma.device, dtype=torch.bool)  # (6, K)
-    group_mean = torch.where(member, sigma[..., :, None], 0).sum(dim=-2) / member.sum(dim=0)
-    tied = group_mean[..., matrix.argmax(dim=1).to(sigma.device)]  # each density takes its group's mean
+    member, group_size, group_of = _tie_groups(model, sigma.device)
+    group_mean = torch.where(member, sigma[..., :, None], 0).sum(dim=-2) / group_size
+    tied = group_mean[..., group_of]  # each density takes its group's mean
     return MediumOutputs(rgb=medium.rgb, sigma_attn=tied[..., :3], sigma_bs=tied[..., 3:])
+
+
+@functools.lru_cache(maxsize=None)
+def _tie_groups(model: str, device: torch.device) -> Tuple[Tensor, Tensor, Tensor]:
+    """:func:`tie_matrix` as ``tie`` reads it, made once per model and device (``tie`` runs on
+    every ray batch): membership ``(6, K)`` bool, group sizes ``(K,)`` int64, each density's group ``(6,)``."""
+    matrix = tie_matrix(model)
+    member = matrix.to(device=device, dtype=torch.bool)
+    return member, member.sum(dim=0), matrix.argmax(dim=1).to(device)  # integer sizes: the mean keeps its dtype
 
 
 def clear_medium(directions: Float[Tensor, "*batch 3"]) -> "MediumOutputs":
