@@ -268,8 +268,10 @@ class SeathruModelConfig(NerfactoModelConfig):
     so that the open water stays empty while the first stage learns the veiling light and the
     medium fit reads it. ``None``: ``binary_prior_mult`` from the start. (Session 15 tried the
     other way round, weak first: fog and turbid landed between their two constant weights.)"""
-    binary_prior_early_steps: int = 500
-    """Training steps that use ``binary_prior_early_mult``: by default up to ``medium_fit_step``."""
+    binary_prior_early_steps: Optional[int] = None
+    """Training steps that use ``binary_prior_early_mult``. ``None``: up to ``medium_fit_step``,
+    whose fit reads the veiling light that the strong prior keeps clear; with no fit step, the
+    early weight throughout."""
     binary_prior_scale: float = 0.1
     """Scale of the two Laplacians of the binary prior."""
     binary_prior_empty_weight: float = 6.0
@@ -314,7 +316,8 @@ class SeathruModelConfig(NerfactoModelConfig):
         if not self.medium_fit_max_log_error > 0:  # NaN fails too
             raise ValueError(f"seathru: medium_fit_max_log_error must be > 0 (got {self.medium_fit_max_log_error})")
         early_weight = self.binary_prior_early_mult
-        if self.binary_prior_early_steps < 0 or not (early_weight is None or early_weight >= 0):  # NaN fails too
+        early_steps = self.binary_prior_early_steps
+        if (early_steps is not None and early_steps < 0) or not (early_weight is None or early_weight >= 0):  # NaN fails too
             raise ValueError(
                 "seathru: binary_prior_early_steps must be >= 0 and binary_prior_early_mult None or >= 0 "
                 f"(got {self.binary_prior_early_steps} and {early_weight})"
@@ -461,7 +464,12 @@ class SeathruModel(NerfactoModel):
     def binary_prior_weight(self) -> float:
         """The binary prior's weight at this training step (``binary_prior_mult`` outside training)."""
         early = self.config.binary_prior_early_mult
-        if early is not None and self.train_step is not None and self.train_step < self.config.binary_prior_early_steps:
+        if early is None or self.train_step is None:
+            return self.config.binary_prior_mult
+        switch = self.config.binary_prior_early_steps
+        if switch is None:
+            switch = self.config.medium_fit_step  # None too: no fit to wait for, the early weight throughout
+        if switch is None or self.train_step < switch:
             return early
         return self.config.binary_prior_mult
 

@@ -421,6 +421,17 @@ def test_the_prior_takes_its_early_weight_before_the_early_steps_and_its_full_we
     )
 
 
+def test_the_prior_switches_at_the_medium_fit_unless_told_otherwise():
+    """``binary_prior_early_steps`` None: the early weight lasts up to ``medium_fit_step``, and
+    throughout when there is no fit; a number overrides the fit step."""
+    for overrides, switch in (({"medium_fit_step": 30}, 30), ({"medium_fit_step": None}, None), ({"medium_fit_step": 30, "binary_prior_early_steps": 10}, 10)):
+        model = tiny_model(medium_model="seathru", medium_first_steps=0, binary_prior_mult=1e-4, binary_prior_early_mult=1e-3, **overrides)
+        for step in (0, 9, 10, 29, 30, 1000):
+            model.train_step = step
+            early = switch is None or step < switch
+            assert model.binary_prior_weight == (1e-3 if early else 1e-4), (overrides, step)
+
+
 def test_auto_decides_before_the_medium_fit_of_the_same_step_so_the_fit_ties_as_chosen():
     """At step 40 ``auto`` chooses ``fog`` from grey evidence; the fit that follows in the same
     step's callbacks then fits one density for all six (``medium_fit_step``), although the
