@@ -18,6 +18,13 @@ to it; channels whose backscatter is tiny (small ``B∞``) leave ``β_B`` undete
 A medium model that renders tied densities (``fog``: one for all six) is fitted tied (``tie``):
 the mean of six free densities is not the best single one (fog demo: 1.03 against 1.11 /m, truth 1.2).
 
+Some observations break the model: a point on a silhouette against open water is sampled
+(bilinearly, and with SfM's position error) partly from the water behind it, in some views and not
+others. Least squares lets those few pull the densities (water demo, with the true veiling light:
+red β_B +21%; turbid: green β_D −37%, β_B −31%). The fit is therefore robust: iteratively reweighted
+least squares with Cauchy weights (:func:`cauchy_weights`), which bring both demos within 11%
+(session 21, docs/benchmarks.md).
+
 Where a channel's ``β_D`` and ``β_B`` trade off along a valley of the residual, the fit lands
 anywhere on it, so each fitted log-density comes with a Gauss–Newton standard error (see
 :func:`log_density_errors`); a caller keeps its own value where that error is large.
@@ -39,6 +46,26 @@ LOG_DENSITY_LIMIT = 20.7
 observations say nothing about may run off towards 0 or infinity."""
 
 
+CAUCHY_TUNING = 2.385
+"""Cauchy weights ``1 / (1 + (r / (c s))²)`` with this ``c``: 95% efficiency on Gaussian residuals
+(Holland & Welsch 1977), the usual choice, not fitted to our scenes."""
+
+MAD_TO_SIGMA = 1.4826
+"""A Gaussian's standard deviation over its median absolute deviation."""
+
+
+def cauchy_weights(residual_norms: Float[Tensor, "P V"], observed: Float[Tensor, "P V"]) -> Float[Tensor, "P V"]:
+    """IRLS weights of the observations (0 where not observed): ``1 / (1 + (r / (c s))²)``, with
+    ``r`` an observation's residual (the norm over RGB), ``c`` :data:`CAUCHY_TUNING` and ``s`` the
+    robust scale ``1.4826 × median r`` over the observations. A residual of ``c s`` weighs ½, one of
+    ``10 c s`` about 1%. Exact data (``s = 0``): the exact observations weigh 1, any other ~0."""
+    seen = observed > 0
+    scale = MAD_TO_SIGMA * residual_norms[seen].median() if bool(seen.any()) else residual_norms.new_zeros(())
+    # s = 0 is floored, not divided by (no 0/0); a huge ratio weighs 0 (1 / inf), never NaN
+    ratio = residual_norms / torch.clamp(CAUCHY_TUNING * scale, min=1e-30)
+    return torch.where(seen, 1.0 / (1.0 + ratio**2), torch.zeros_like(residual_norms))
+
+
 def best_colours(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
@@ -50,7 +77,8 @@ def best_colours(
     """Per point the least-squares object colour ``J ≥ 0``, and the predicted colours.
 
     ``observed`` is 1 where an observation exists and 0 elsewhere (``ranges`` and ``colours``
-    must be finite there too). Returns ``(J, J a + B)``."""
+    must be finite there too); values between weigh an observation (weighted least squares).
+    Returns ``(J, J a + B)``."""
     z = ranges[..., None]
     transmittance = torch.exp(-beta_d * z)
     backscatter = veil * -torch.expm1(-beta_b * z)
@@ -133,6 +161,7 @@ def fit_densities(
     start_backscatter: Float[Tensor, "3"],
     max_iterations: int = 200,
     tie: str = "seathru",
+    reweightings: int = 3,
 ) -> DensityFit:
     """``β_D, β_B`` in 1/world unit, fitted by L-BFGS on the log-densities, with the mean squared
     residual and the standard errors of the log-densities (:func:`log_density_errors`;
@@ -142,7 +171,14 @@ def fit_densities(
 
     ``ranges`` and ``colours`` carry NaN where a point was not observed. The starts must be
     positive; the fit moves them in log space, so the densities stay positive (and within
-    :data:`LOG_DENSITY_LIMIT`)."""
+    :data:`LOG_DENSITY_LIMIT`).
+
+    ``reweightings``: after the least-squares fit, this many rounds of :func:`cauchy_weights` from
+    the last fit's residuals, each refitted from where the last ended (0: least squares only; the
+    demos settle after one or two). The residual and the standard errors are those of the last
+    weighted fit: the down-weighted observations count by their weight."""
+    if reweightings < 0:
+        raise ValueError(f"fit_densities: reweightings must be >= 0 (got {reweightings})")
     if not (torch.all(start_attenuation > 0) and torch.all(start_backscatter > 0)):
         raise ValueError("fit_densities: the starting densities must be positive")
     observed = torch.isfinite(ranges) & torch.isfinite(colours).all(dim=-1)
@@ -154,28 +190,38 @@ def fit_densities(
     veil = veil.detach().double()
     tied = tie_matrix(tie)
     start_log = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
-    free = ((tied.T @ start_log) / tied.sum(dim=0)).requires_grad_(True)
+    observed_weight = weight
+
+    def fitted_log_densities(start_free: Tensor, weight: Tensor) -> Tensor:
+        free = start_free.clone().requires_grad_(True)
+        count = weight.sum() * 3
+        optimizer = torch.optim.LBFGS(
+            [free], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-12, tolerance_change=1e-15,
+            line_search_fn="strong_wolfe",
+        )  # fmt: skip
+
+        def closure() -> Tensor:
+            optimizer.zero_grad()
+            densities = torch.exp(tied @ free)
+            _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
+            loss = ((predicted - rgb) ** 2 * weight[..., None]).sum() / count
+            loss.backward()
+            return loss
+
+        optimizer.step(closure)
+        found = free.detach()
+        return found if torch.isfinite(found).all() else start_free  # a diverged search: keep its start
+
+    start_free = ((tied.T @ start_log) / tied.sum(dim=0)).detach()
+    free_fit = fitted_log_densities(start_free, weight)
+    for _ in range(reweightings):
+        with torch.no_grad():
+            densities = torch.exp((tied @ free_fit).clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
+            _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
+            weight = cauchy_weights(torch.linalg.vector_norm(predicted - rgb, dim=-1), observed_weight)
+        free_fit = fitted_log_densities(free_fit, weight)
     count = weight.sum() * 3
-
-    def residual_at(densities: Tensor) -> Tensor:
-        _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
-        return ((predicted - rgb) ** 2 * weight[..., None]).sum() / count
-
-    optimizer = torch.optim.LBFGS(
-        [free], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-12, tolerance_change=1e-15,
-        line_search_fn="strong_wolfe",
-    )  # fmt: skip
-
-    def closure() -> Tensor:
-        optimizer.zero_grad()
-        loss = residual_at(torch.exp(tied @ free))
-        loss.backward()
-        return loss
-
-    optimizer.step(closure)
-    log_densities = tied @ free.detach()
-    if not torch.isfinite(log_densities).all():  # a diverged search: keep the start
-        log_densities = tied @ ((tied.T @ start_log) / tied.sum(dim=0))
+    log_densities = tied @ free_fit
     # 1e-9 to 1e9 per world unit: finite, and finite under inverse softplus
     densities = torch.exp(log_densities.detach().clamp(-LOG_DENSITY_LIMIT, LOG_DENSITY_LIMIT))
     def squared_error_at(log_values: Tensor) -> Tensor:  # per channel, summed over observations
