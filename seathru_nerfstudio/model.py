@@ -597,7 +597,7 @@ class SeathruModel(NerfactoModel):
         if self.config.medium_fit_holds:
             self.densities_fitted.copy_(torch.cat([~uncertain, ~uncertain]).to(self.densities_fitted.device))
         CONSOLE.print(
-            f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({tie})[/] "
+            f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({self.medium_model} tie)[/] "
             f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
             f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
             f"standard error of ln beta_D {show(fit.attenuation_log_error)}"

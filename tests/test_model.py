@@ -786,7 +786,7 @@ def test_a_zero_or_non_finite_dataparser_scale_is_refused():
     assert tiny_model(metadata={SCALE_KEY: 0.25}).world_scale == 0.25
 
 
-def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations():
+def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(capsys):
     """At ``medium_fit_step`` the scene medium's densities (per scene unit) become the fit (per metre)
     divided by the scale; before that step nothing changes; a ray medium is left alone."""
     from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
@@ -825,7 +825,9 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations()
     assert reloaded.densities_fitted.all()
     # the fit ties the densities as the medium model in use renders them; clear air has none to fit
     fog = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_model="fog")
+    capsys.readouterr()
     fog._fit_medium(step=9)
+    assert "(fog tie)" in capsys.readouterr().out  # the log names the tie it fitted
     fog_sigma = torch.nn.functional.softplus(fog.medium_field.density_raw.detach().double())
     torch.testing.assert_close(fog_sigma, fog_sigma[:1].expand(6), rtol=1e-6, atol=0)
     assert not torch.allclose(fog_sigma, torch.nn.functional.softplus(before.double()))
