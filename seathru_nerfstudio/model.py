@@ -220,12 +220,14 @@ class SeathruModelConfig(NerfactoModelConfig):
     at the end of the first stage). The densities are fitted tied as the model in use renders them
     (``auto`` decides first at the same step): ``fog`` one density, ``uniform`` one per channel;
     ``none`` is not fitted. Session 17-18, one run each against the excess term alone:
-    water clean 23.9 against 17.6 dB, turbid 20.2 against 18.3 (docs/benchmarks.md). ``None``: off."""
+    water clean 23.9 against 17.6 dB, turbid 20.2 against 18.3 (docs/benchmarks.md). The fit is
+    Cauchy-reweighted (silhouette observations see the water behind): session 21, one run each
+    against least squares, water 26.5 against 25.9 dB, turbid 23.7 against 21.0. ``None``: off."""
     medium_fit_max_log_error: float = 0.1
     """``medium_fit_step``: a channel keeps its trained densities where the fit's standard error
     of ``ln β_D`` is above this (0.1: about 10%, half the error we accept). On turbid's green the
-    fitted β_D was 41% low, with an error of 0.157; every other channel of the three demos, 0.03-0.07
-    (docs/benchmarks.md, session 18)."""
+    least-squares β_D was 41% low, with an error of 0.157; every other channel of the three demos, 0.03-0.07
+    (docs/benchmarks.md, session 18). The robust fit (session 21) gives turbid's green 0.055, 8% low."""
     medium_fit_holds: bool = True
     """``medium_fit_step``: the channels the fit replaced keep their fitted densities for the rest
     of training (no gradient); a channel it kept trains on. Off, they train on from the fit, and
