@@ -34,7 +34,8 @@ from seathru_nerfstudio.losses import (
     depth_kernel_variance,
     rawnerf_loss,
 )
-from seathru_nerfstudio.data.nerfstudio_data import RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY
+from seathru_nerfstudio.contraction import ContractionBeyond
+from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.medium_field import (
     MEDIUM_MODELS,
     FixedMedium,
@@ -153,6 +154,16 @@ class SeathruModelConfig(NerfactoModelConfig):
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
     farther does not come back through water, and an unbounded field starts as an opaque
     wall behind the open water. 0: nerfacto's ``far_plane``."""
+    contraction_at_scene: bool = False
+    """Experimental: the object field's and proposal networks' scene contraction starts at the
+    extent of the cameras' view up to the scene's far bound (the dataparser's ``frustum_extent``),
+    not at the unit cube the poses are scaled into (:mod:`seathru_nerfstudio.contraction`). With
+    nerfacto's, a forward-facing rig's whole scene lies in the contracted shell, where turbid's far
+    surfaces get grid cells about 0.5 m deep and come out as thick ramps 4% too far. Measured on
+    turbid (docs/benchmarks.md, session 22, one run): far-third depth 0.085 -> 0.011, in-medium
+    45.7 -> 46.4 dB, but the object field walls off the open water (opacity 0.04 -> 1.0), which
+    ruins the medium (green and blue beta_B 28% and 40% low) and the clean image (23.7 -> 20.7
+    dB); hence off until the open water stays empty with it. Without a far bound: nerfacto's."""
     render_from_near_bound: bool = True
     """Renders outside training (evaluation, the viewer, ``ns-render``) start their rays at the
     near bound (the scene's, or ``near_plane`` without one), as training does. nerfstudio starts them at 0, which shows the space in front of
@@ -371,6 +382,14 @@ class SeathruModel(NerfactoModel):
             self.first_stage_object = self._object_state()
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
+        self.contraction_radius = 1.0
+        """Scene units at which the hash grids' contraction starts (1: nerfacto's)."""
+        if self.config.contraction_at_scene and EXTENT_KEY in metadata:
+            self.contraction_radius = max(1.0, float(metadata[EXTENT_KEY]))
+            contraction = ContractionBeyond(self.contraction_radius)
+            self.field.spatial_distortion = contraction
+            for network in self.proposal_networks:
+                network.spatial_distortion = contraction
         self.far_range: Optional[float] = (
             float(metadata["far_plane"]) / self.world_scale if "far_plane" in metadata else None
         )

@@ -12,6 +12,7 @@ import pytest
 import torch
 
 from seathru_nerfstudio.data.linear_images import LinearImageDataset
+from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY
 from seathru_nerfstudio.data.seathru_dataparser import SeathruDataError, SeathruDataParserConfig
 from seathru_nerfstudio.data.sfm import llff_poses_bounds
 
@@ -95,6 +96,15 @@ def test_published_split_intrinsics_near_far_and_no_downscale(tmp_path: Path) ->
     assert torch.allclose(test.metadata["near_far"][:, 0], torch.tensor(NEAR[[0, 8]] * scale, dtype=torch.float32))
     assert train.metadata["near_plane"] == pytest.approx(NEAR.min() * scale)
     assert train.metadata["far_plane"] == pytest.approx(FAR.max() * scale)
+    # the contraction's extent holds every view up to the far bound, and little more
+    far, c2w, cams = train.metadata["far_plane"], train.cameras.camera_to_worlds, train.cameras
+    on_axis = c2w[:, :3, 3] - c2w[:, :3, 2] * far  # the optical axis at z-depth far (cameras look along -z)
+    half_u = torch.maximum(cams.cx, cams.width - cams.cx) / cams.fx
+    half_v = torch.maximum(cams.cy, cams.height - cams.cy) / cams.fy
+    corner_norm = float(torch.sqrt(half_u**2 + half_v**2 + 1).max())
+    extent = train.metadata[EXTENT_KEY]
+    assert float(on_axis.abs().max()) <= extent * (1 + 1e-6)  # float32 poses
+    assert extent <= float(c2w[:, :3, 3].abs().max()) + far * corner_norm + 1e-5
 
     # camera centres keep their spacing: consecutive names 0.1 COLMAP units apart, times the scale
     centres = train.cameras.camera_to_worlds[:, :3, 3]

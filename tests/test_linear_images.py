@@ -80,7 +80,7 @@ def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
     ``depth_image`` in scene units, and the parser tells the model its scale."""
     import cv2
 
-    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SeathruNerfstudioDataParserConfig
+    from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, SeathruNerfstudioDataParserConfig
     from seathru_nerfstudio.data.synthetic import SynthConfig, generate
 
     scene = generate(SynthConfig(output_dir=tmp_path / "s", width=24, height=16, num_views=3, sfm_points_per_view=20))
@@ -98,6 +98,14 @@ def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
     true_range = min(float(np.load(p).min()) for p in (scene / "ground_truth" / "depth").glob("*.npy"))
     near_m = outputs.metadata["near_plane"] / scale
     assert 0.8 * true_range < near_m < 1.5 * true_range, (near_m, true_range)
+    # the contraction's extent: every SfM point (back-projected, scene units) lies inside it
+    c2w = outputs.cameras.camera_to_worlds[0].double()
+    v, u = np.nonzero(known)
+    z = stored[known] * 1e-3 * scale
+    fx, fy, cx, cy = (float(getattr(outputs.cameras, k)[0]) for k in ("fx", "fy", "cx", "cy"))
+    local = np.stack([(u + 0.5 - cx) / fx * z, -(v + 0.5 - cy) / fy * z, -z], axis=-1)
+    points = local @ c2w[:, :3].numpy().T + c2w[:, 3].numpy()
+    assert np.abs(points).max() <= outputs.metadata[EXTENT_KEY] + 1e-6
 
 
 def _synth_scene(root, name="s"):

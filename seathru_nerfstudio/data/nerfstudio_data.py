@@ -21,6 +21,7 @@
 
 from __future__ import annotations
 
+import math
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,7 @@ from typing import Dict, List, Sequence, Type
 
 import cv2
 import numpy as np
+import torch
 
 from nerfstudio.data.dataparsers.base_dataparser import DataparserOutputs
 from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, NerfstudioDataParserConfig
@@ -45,6 +47,9 @@ SFM_OBSERVATIONS_KEY = "sfm_observations"
 """Metadata key (training split, with ``sfm_observations``): :class:`SfmObservations`, world units."""
 SCALE_KEY = "dataparser_scale"
 """Metadata key: scene units per world unit (a float)."""
+EXTENT_KEY = "frustum_extent"
+"""Metadata key: the largest ``|x|∞`` (scene units) of the split's view frustums cut at the far
+bound (:func:`frustum_extent`), where the model's scene contraction starts."""
 NEAR_PERCENTILE = 0.1
 """Per image, the near bound is this percentile of its SfM depths (LLFF's choice), so that a
 stray point does not set it; the far bound the opposite percentile."""
@@ -81,6 +86,7 @@ class SeathruNerfstudio(Nerfstudio):
             if bounds is not None:
                 outputs.metadata["near_plane"] = bounds[0] * unit * scale
                 outputs.metadata["far_plane"] = bounds[1] * unit * scale
+                outputs.metadata[EXTENT_KEY] = frustum_extent(outputs.cameras, outputs.metadata["far_plane"])
             if split == "train":
                 spread = sfm_range_spread([depth * unit for depth in depths], outputs.cameras, scale)
                 outputs.metadata[RANGE_SPREAD_KEY] = spread
@@ -144,6 +150,27 @@ def sfm_bounds(depths: List[np.ndarray]) -> tuple[float, float] | None:
             nears.append(float(np.percentile(known, NEAR_PERCENTILE)))
             fars.append(float(np.percentile(known, 100.0 - NEAR_PERCENTILE)))
     return (min(nears), max(fars)) if nears else None
+
+
+def frustum_extent(cameras, far_depth: float) -> float:
+    """The largest ``|x|∞`` of nerfstudio's ``cameras``' view frustums cut at z-depth ``far_depth``
+    (pinhole part of the model; the camera looks along its ``-z``), in the poses' units.
+
+    ``|x|∞`` is convex and a cut frustum is the convex hull of the camera centre and its four image
+    corners at ``far_depth``, so the maximum over those five points per camera is exact."""
+    if not (math.isfinite(far_depth) and far_depth > 0):
+        raise ValueError(f"the far depth must be finite and positive, got {far_depth}")
+    flat = lambda values: values.flatten().double()  # noqa: E731
+    width, height = flat(cameras.width), flat(cameras.height)
+    corners_u = torch.stack([torch.zeros_like(width), width, torch.zeros_like(width), width], dim=-1)  # [N, 4]
+    corners_v = torch.stack([torch.zeros_like(height), torch.zeros_like(height), height, height], dim=-1)
+    x = (corners_u - flat(cameras.cx)[:, None]) / flat(cameras.fx)[:, None]
+    y = -(corners_v - flat(cameras.cy)[:, None]) / flat(cameras.fy)[:, None]
+    directions = torch.stack([x, y, -torch.ones_like(x)], dim=-1) * far_depth  # camera frame, [N, 4, 3]
+    camera_to_worlds = cameras.camera_to_worlds.double().reshape(-1, 3, 4)
+    rotation, centre = camera_to_worlds[:, :, :3], camera_to_worlds[:, :, 3]
+    corners = torch.einsum("nij,nkj->nki", rotation, directions) + centre[:, None, :]
+    return float(torch.cat([centre[:, None, :], corners], dim=1).abs().amax())
 
 
 def world_pinholes(cameras, scene_per_world: float):

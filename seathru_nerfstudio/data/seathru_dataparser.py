@@ -37,7 +37,7 @@ from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, Colm
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
+from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, frustum_extent
 
 IMAGE_FOLDER_CANDIDATES = (Path("images_wb"), Path("Images_wb"), Path("images"))
 IMAGE_SUFFIXES = frozenset({".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr"})
@@ -197,6 +197,7 @@ class SeathruDataParser(ColmapDataParser):
         outputs.metadata["near_far"] = torch.from_numpy(near_far[self._split_indices] * scale).float()
         outputs.metadata["near_plane"] = float(near_far[:, 0].min() * scale)
         outputs.metadata["far_plane"] = float(near_far[:, 1].max() * scale)
+        outputs.metadata[EXTENT_KEY] = frustum_extent(outputs.cameras, outputs.metadata["far_plane"])
         outputs.metadata[SCALE_KEY] = scale
         return outputs
 
