@@ -172,6 +172,14 @@ class SeathruModelConfig(NerfactoModelConfig):
     the near bound: no training ray samples it, so it holds whatever the object field has there
     (measured on the water demo, held-out views: open-water opacity 0.20, PSNR 28.2 dB; with the
     near bound 43.8 dB). Off: a camera closer to the scene than the near bound still sees it."""
+    veil_from_open_rays: bool = False
+    """The veiling light B_inf learns only from the share of each ray that passes all matter (open
+    water), not from the backscatter in front of surfaces, where it trades off against
+    ``sigma_bs`` (:func:`~seathru_nerfstudio.rendering.render_seathru`). Measured with
+    ``contraction_at_scene`` (docs/benchmarks.md, session 23, one run): on turbid the object field no
+    longer walls off the open water (0.08 against 1.00), green B_inf stays at 0.260 (truth 0.26;
+    without it 0.30), and clean is 27.6 dB against 20.8, far third 0.011. Off until water, fog and
+    ``none`` are measured with it."""
     medium_first_steps: int = 200
     """For this many steps the scene is empty and only the veiling light learns (it fits the
     images' average water colour), then the object field starts. The untrained veiling light
@@ -783,6 +791,7 @@ class SeathruModel(NerfactoModel):
             sigma_attn=medium.sigma_attn,
             sigma_bs=medium.sigma_bs,
             quadrature=self.config.quadrature,
+            veil_from_open_rays=self.config.veil_from_open_rays,
         )
         outputs = self._collect_outputs(
             ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, densities_for_envelope

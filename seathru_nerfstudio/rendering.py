@@ -140,11 +140,18 @@ def render_seathru(
     sigma_attn: Float[Tensor, "*batch 3"],
     sigma_bs: Float[Tensor, "*batch 3"],
     quadrature: Quadrature = "analytic",
+    veil_from_open_rays: bool = False,
 ) -> SeathruRender:
     """Render rays through an object field in a per-ray homogeneous medium (sec. 4.3).
 
     The basic model of sec. 4.1 (eqs. 11-13, one medium density) is this function with
     ``sigma_attn = sigma_bs`` and ``quadrature="paper"``.
+
+    ``veil_from_open_rays``: the same values, but the gradient reaching ``medium_rgb`` is scaled,
+    ray by ray, by the share of the ray that passes all matter, ``T_obj,N = e^{-tau_N}``. The
+    veiling light is the colour at infinity, seen directly only where the view is open; on a ray
+    that ends on a surface, ``B_inf`` and ``sigma_bs`` trade off along ``B_inf (1 - e^{-sigma_bs z})``,
+    and this leaves that trade to the densities.
     """
     if quadrature not in ("analytic", "paper"):
         raise ValueError(f"unknown quadrature {quadrature!r}; expected 'analytic' or 'paper'")
@@ -183,7 +190,11 @@ def render_seathru(
             torch.exp(-(tau_end[..., 0, :] + bs[..., 0, :] * s_last)),
             torch.zeros_like(bs[..., 0, :]),
         )
-        backscatter = (head + inside + tail) * c_med[..., 0, :]
+        veil = c_med[..., 0, :]
+        if veil_from_open_rays:
+            open_share = torch.exp(-tau_end[..., 0, :]).detach()  # [..., 1]
+            veil = veil * open_share + veil.detach() * (1.0 - open_share)
+        backscatter = (head + inside + tail) * veil
 
         clean = torch.sum(weights * c_obj, dim=-2)
         accumulation = one_minus_exp(tau_end[..., 0, :])

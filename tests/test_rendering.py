@@ -315,3 +315,34 @@ def test_object_weights_are_nerfstudios_and_the_renderers():
         with torch.autocast(device_type="cpu", dtype=half):
             w, t, _ = object_weights(torch.full((2, 8, 1), 6e4).to(half), torch.full((2, 8, 1), 1e3).to(half))
         assert w.dtype == torch.float32 and torch.isfinite(w).all() and torch.isfinite(t).all()
+
+
+@pytest.mark.parametrize("quadrature", ["analytic", "paper"])
+def test_veil_from_open_rays_keeps_values_and_scales_the_veil_gradient_by_the_open_share(quadrature):
+    """Same image; d rgb / d c_med is the backscatter's own factor times T_obj,N, ray by ray: 1 on an
+    empty ray, 0 behind an opaque wall; the densities' and the object's gradients are unchanged."""
+    starts, deltas = uneven_bins(32, 0.1, 12.0, seed=3)
+    gen = torch.Generator().manual_seed(5)
+    rgb = torch.rand(3, 32, 3, generator=gen)
+    density = torch.rand(3, 32, 1, generator=gen) * 0.3
+    density[1] = 0.0  # open water
+    density[2, 20:] = 1e12  # an opaque wall
+    grads = {}
+    for flag in (False, True):
+        c_med = B_INF.expand(3, 3).clone().requires_grad_(True)
+        attn = BETA_D.expand(3, 3).clone().requires_grad_(True)
+        bs = BETA_B.expand(3, 3).clone().requires_grad_(True)
+        obj = rgb.clone().requires_grad_(True)
+        out = render_seathru(obj, density, starts.expand(3, 32, 1), deltas.expand(3, 32, 1), c_med, attn, bs,
+                             quadrature=quadrature, veil_from_open_rays=flag)
+        out.rgb.sum().backward()
+        grads[flag] = (out, c_med.grad, attn.grad, bs.grad, obj.grad)
+    plain, veil_open = grads[False], grads[True]
+    torch.testing.assert_close(veil_open[0].rgb, plain[0].rgb, rtol=1e-14, atol=1e-15)
+    for a, b in zip(veil_open[2:], plain[2:]):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-15)
+    open_share = 1.0 - veil_open[0].accumulation  # T_obj,N
+    torch.testing.assert_close(veil_open[1], plain[1] * open_share, rtol=1e-12, atol=1e-15)
+    torch.testing.assert_close(veil_open[1][1], torch.ones(3), rtol=1e-12, atol=1e-15)  # empty: sees B_inf
+    torch.testing.assert_close(veil_open[1][2], torch.zeros(3), rtol=0, atol=1e-12)  # behind the wall
+    assert (veil_open[1][0] > 0).all() and (veil_open[1][0] < plain[1][0]).all()
