@@ -163,9 +163,11 @@ class SeathruModelConfig(NerfactoModelConfig):
     turbid (docs/benchmarks.md, session 22, one run): far-third depth 0.085 -> 0.011, in-medium
     45.7 -> 46.4 dB, but the object field walls off the open water (opacity 0.04 -> 1.0), which
     ruins the medium (green and blue beta_B 28% and 40% low) and the clean image (23.7 -> 20.7
-    dB); hence off until the open water stays empty with it. (With ``medium_density_hold_steps 300``
-    and ``medium_model seathru`` it did on turbid: clean 27.2 dB, far third 0.011, one run; ``auto``
-    cannot decide under that hold.) Without a far bound: nerfacto's."""
+    dB). With ``veil_from_open_rays`` the open water stays empty (session 23, one run each): turbid
+    46.35 / 27.63 dB, far third 0.011; water 45.93 / 28.60 (defaults 44.01 / 26.53). Alone it
+    already helps where the open water is not walled: water 46.16 / 28.98, fog 44.54 / 25.30
+    (23.50), ``none`` 33.50 (30.80). Off until fog with both, the oracles and the quickstart are
+    re-measured. Without a far bound: nerfacto's."""
     render_from_near_bound: bool = True
     """Renders outside training (evaluation, the viewer, ``ns-render``) start their rays at the
     near bound (the scene's, or ``near_plane`` without one), as training does. nerfstudio starts them at 0, which shows the space in front of
