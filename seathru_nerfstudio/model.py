@@ -180,8 +180,9 @@ class SeathruModelConfig(NerfactoModelConfig):
     ``sigma_bs`` (:func:`~seathru_nerfstudio.rendering.render_seathru`). Measured with
     ``contraction_at_scene`` (docs/benchmarks.md, session 23, one run): on turbid the object field no
     longer walls off the open water (0.08 against 1.00), green B_inf stays at 0.260 (truth 0.26;
-    without it 0.30), and clean is 27.6 dB against 20.8, far third 0.011. Off until water, fog and
-    ``none`` are measured with it."""
+    without it 0.30), and clean is 27.6 dB against 20.8, far third 0.011. On water, whose open water
+    the contraction does not wall, it changes little (45.93 / 28.60 dB against 46.16 / 28.98). Off
+    until fog is measured with it (``none`` renders no medium, so it cannot reach it)."""
     medium_first_steps: int = 200
     """For this many steps the scene is empty and only the veiling light learns (it fits the
     images' average water colour), then the object field starts. The untrained veiling light
