@@ -320,6 +320,26 @@ def test_scene_medium_is_the_same_for_every_ray_and_learns():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in groups["medium"] + groups["medium_density"])
 
 
+@pytest.mark.parametrize("flag", [False, True])
+def test_the_model_learns_the_veil_from_open_rays_when_configured(flag):
+    """``veil_from_open_rays`` reaches the renderer: each ray's gradient on the veiling light is the
+    plain one times the share of the ray that passes all matter, 1 - accumulation."""
+    grads = []
+    for veil_from_open_rays in (False, flag):
+        torch.manual_seed(0)
+        model = tiny_model(
+            medium_scope="scene", medium_first_steps=0, average_init_density=3.0, veil_from_open_rays=veil_from_open_rays
+        )
+        model.train()
+        out = model(rays(32, seed=5))
+        (grad,) = torch.autograd.grad(out["rgb"].sum(), out["medium_rgb"])
+        grads.append(grad)
+        open_share = 1.0 - out["accumulation"].detach()
+    assert ((open_share > 0.05) & (open_share < 0.95)).any()  # rays that are partly open
+    expected = grads[0] * open_share if flag else grads[0]
+    torch.testing.assert_close(grads[1], expected, rtol=1e-4, atol=1e-7)
+
+
 def test_oracle_medium_is_the_truth_per_scene_unit_and_has_no_parameters(tmp_path):
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
