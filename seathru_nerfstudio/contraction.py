@@ -11,9 +11,9 @@ ramps whose median sits 4% behind the truth (docs/benchmarks.md, session 22).
 :class:`ContractionBeyond` contracts ``x / radius`` instead, with ``radius`` the extent of what
 the cameras can see up to the scene's far bound
 (:func:`seathru_nerfstudio.data.nerfstudio_data.frustum_extent`): the scene is resolved
-linearly, and only the space behind it is contracted. Off by default
-(``SeathruModelConfig.contraction_at_scene``): on turbid it fixed the far surfaces but let the object
-field wall off the open water.
+linearly, and only the space behind it is contracted (``SeathruModelConfig.contraction_at_scene``,
+on by default since session 24; on turbid it fixes the far surfaces, and with
+``veil_from_open_rays`` the open water stays empty).
 """
 
 from __future__ import annotations

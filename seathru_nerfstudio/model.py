@@ -154,35 +154,32 @@ class SeathruModelConfig(NerfactoModelConfig):
     the object field ends at this multiple of it instead of at ``far_plane``: light from much
     farther does not come back through water, and an unbounded field starts as an opaque
     wall behind the open water. 0: nerfacto's ``far_plane``."""
-    contraction_at_scene: bool = False
-    """Experimental: the object field's and proposal networks' scene contraction starts at the
-    extent of the cameras' view up to the scene's far bound (the dataparser's ``frustum_extent``),
-    not at the unit cube the poses are scaled into (:mod:`seathru_nerfstudio.contraction`). With
-    nerfacto's, a forward-facing rig's whole scene lies in the contracted shell, where turbid's far
-    surfaces get grid cells about 0.5 m deep and come out as thick ramps 4% too far. Measured on
-    turbid (docs/benchmarks.md, session 22, one run): far-third depth 0.085 -> 0.011, in-medium
-    45.7 -> 46.4 dB, but the object field walls off the open water (opacity 0.04 -> 1.0), which
-    ruins the medium (green and blue beta_B 28% and 40% low) and the clean image (23.7 -> 20.7
-    dB). With ``veil_from_open_rays`` the open water stays empty (session 23, one run each): turbid
-    46.35 / 27.63 dB, far third 0.011; water 45.93 / 28.60 (defaults 44.01 / 26.53). Alone it
-    already helps where the open water is not walled: water 46.16 / 28.98, fog 44.54 / 25.30
-    (23.50), ``none`` 33.50 (30.80). Off until fog with both, the oracles and the quickstart are
-    re-measured. Without a far bound: nerfacto's."""
+    contraction_at_scene: bool = True
+    """The object field's and proposal networks' scene contraction starts at the extent of the
+    cameras' view up to the scene's far bound (the dataparser's ``frustum_extent``), not at the unit
+    cube the poses are scaled into (:mod:`seathru_nerfstudio.contraction`). With nerfacto's, a
+    forward-facing rig's whole scene lies in the contracted shell, where turbid's far surfaces get
+    grid cells about 0.5 m deep and come out as thick ramps 4% too far (far-third depth 0.085).
+    Alone it walls off turbid's open water (opacity 1.0, clean 20.7 dB), so it goes with
+    ``veil_from_open_rays``. Measured with both (docs/benchmarks.md, sessions 23-24, one run each,
+    1500 iterations), against the old defaults: turbid 46.35 / 27.63 dB in-medium / clean (45.65 /
+    23.70), far third 0.011 (0.085); water 45.93 / 28.60 (44.01 / 26.53); fog 44.57 / 26.12 (41.83 /
+    23.50). Off, or without a far bound: nerfacto's."""
     render_from_near_bound: bool = True
     """Renders outside training (evaluation, the viewer, ``ns-render``) start their rays at the
     near bound (the scene's, or ``near_plane`` without one), as training does. nerfstudio starts them at 0, which shows the space in front of
     the near bound: no training ray samples it, so it holds whatever the object field has there
     (measured on the water demo, held-out views: open-water opacity 0.20, PSNR 28.2 dB; with the
     near bound 43.8 dB). Off: a camera closer to the scene than the near bound still sees it."""
-    veil_from_open_rays: bool = False
+    veil_from_open_rays: bool = True
     """The veiling light B_inf learns only from the share of each ray that passes all matter (open
     water), not from the backscatter in front of surfaces, where it trades off against
-    ``sigma_bs`` (:func:`~seathru_nerfstudio.rendering.render_seathru`). Measured with
-    ``contraction_at_scene`` (docs/benchmarks.md, session 23, one run): on turbid the object field no
-    longer walls off the open water (0.08 against 1.00), green B_inf stays at 0.260 (truth 0.26;
-    without it 0.30), and clean is 27.6 dB against 20.8, far third 0.011. On water, whose open water
-    the contraction does not wall, it changes little (45.93 / 28.60 dB against 46.16 / 28.98). Off
-    until fog is measured with it (``none`` renders no medium, so it cannot reach it)."""
+    ``sigma_bs`` (:func:`~seathru_nerfstudio.rendering.render_seathru`). Without it, under
+    ``contraction_at_scene``, turbid's object field walls off the open water and B_inf follows the
+    wall (green 0.30 against the true 0.26); with it the open water stays empty (0.08 against 1.00),
+    green B_inf is 0.260 and clean 27.6 dB against 20.8 (docs/benchmarks.md, session 23, one run).
+    Fog: B_inf exact, clean 26.12 dB against 25.30 without it (session 24). Water: 45.93 / 28.60
+    dB against 46.16 / 28.98 without it, less than a seed separates (session 23)."""
     medium_first_steps: int = 200
     """For this many steps the scene is empty and only the veiling light learns (it fits the
     images' average water colour), then the object field starts. The untrained veiling light

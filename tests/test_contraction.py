@@ -114,8 +114,9 @@ def test_the_model_contracts_beyond_the_extent_it_is_given() -> None:
     assert model.contraction_radius == 12.0
     distortions = [model.field.spatial_distortion] + [net.spatial_distortion for net in model.proposal_networks]
     assert all(isinstance(d, ContractionBeyond) and d.radius == 12.0 for d in distortions)
-    # a scene inside the unit cube keeps nerfacto's contraction; off (the default), or no extent: nerfacto's
+    assert tiny_model(metadata={EXTENT_KEY: 12.0}).contraction_radius == 12.0  # the default
+    # a scene inside the unit cube keeps nerfacto's contraction; off, or no extent: nerfacto's
     assert tiny_model(metadata={EXTENT_KEY: 0.5}, contraction_at_scene=True).contraction_radius == 1.0
-    for model in (tiny_model(metadata={EXTENT_KEY: 12.0}), tiny_model(contraction_at_scene=True)):
+    for model in (tiny_model(metadata={EXTENT_KEY: 12.0}, contraction_at_scene=False), tiny_model(contraction_at_scene=True)):
         assert model.contraction_radius == 1.0
         assert not isinstance(model.field.spatial_distortion, ContractionBeyond)
