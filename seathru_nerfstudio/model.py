@@ -244,6 +244,13 @@ class SeathruModelConfig(NerfactoModelConfig):
     water clean 23.9 against 17.6 dB, turbid 20.2 against 18.3 (docs/benchmarks.md). The fit is
     Cauchy-reweighted (silhouette observations see the water behind): session 21, one run each
     against least squares, water 26.5 against 25.9 dB, turbid 23.7 against 21.0. ``None``: off."""
+    medium_fit_oracle: Optional[Path] = None
+    """Diagnostic: a ``medium.json`` (as for ``medium_oracle``) whose densities replace the fit's
+    at ``medium_fit_step`` (which ones: ``medium_fit_oracle_parts``); the veiling light and
+    everything before the fit stay learned. Separates the fit's error from the rest of a run."""
+    medium_fit_oracle_parts: Literal["both", "attenuation", "backscatter"] = "both"
+    """``medium_fit_oracle``: the true ``β_D`` and ``β_B``, or ``β_D`` alone, or ``β_B`` alone (the
+    other from the fit)."""
     medium_fit_max_log_error: float = 0.1
     """``medium_fit_step``: a channel keeps its trained densities where the fit's standard error
     of ``ln β_D`` is above this (0.1: about 10%, half the error we accept). On turbid's green the
@@ -336,6 +343,8 @@ class SeathruModelConfig(NerfactoModelConfig):
                 f"({self.medium_auto_decision_step}), which must come after medium_first_steps "
                 f"({self.medium_first_steps}), from medium_auto_evidence_steps ({self.medium_auto_evidence_steps}) > 0 steps"
             )
+        if self.medium_fit_oracle is not None and (self.medium_fit_step is None or self.medium_oracle is not None):
+            raise ValueError("seathru: medium_fit_oracle replaces the fit of medium_fit_step: set that step, without medium_oracle")
         if not self.medium_fit_max_log_error > 0:  # NaN fails too
             raise ValueError(f"seathru: medium_fit_max_log_error must be > 0 (got {self.medium_fit_max_log_error})")
         early_weight = self.binary_prior_early_mult
@@ -612,7 +621,8 @@ class SeathruModel(NerfactoModel):
         )
         uncertain = fit.attenuation_log_error > self.config.medium_fit_max_log_error
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
-        if uncertain.all():  # nothing to replace: leave the parameters and their Adam state alone
+        oracle_parts = self.config.medium_fit_oracle_parts if self.config.medium_fit_oracle is not None else None
+        if uncertain.all() and oracle_parts is None:  # nothing to replace: leave the parameters and their Adam state alone
             CONSOLE.print(
                 f"[bold]seathru step {step}: medium fit to {table.num_observations} SfM observations kept the "
                 f"trained densities (standard error of ln beta_D {show(fit.attenuation_log_error)})"
@@ -620,13 +630,21 @@ class SeathruModel(NerfactoModel):
             return
         beta_d = torch.where(uncertain, densities[:3], fit.attenuation)
         beta_b = torch.where(uncertain, densities[3:], fit.backscatter)
+        replaced_d, replaced_b = ~uncertain, ~uncertain
+        if oracle_parts is not None:  # diagnostic: the truth in place of the fit (and held like it)
+            truth = json.loads(Path(self.config.medium_fit_oracle).read_text())
+            if oracle_parts != "backscatter":
+                beta_d, replaced_d = torch.tensor(truth["beta_D"], dtype=beta_d.dtype), torch.ones_like(uncertain)
+            if oracle_parts != "attenuation":
+                beta_b, replaced_b = torch.tensor(truth["beta_B"], dtype=beta_b.dtype), torch.ones_like(uncertain)
+            CONSOLE.print(f"[bold]seathru step {step}: medium_fit_oracle: the true densities ({oracle_parts}) replace the fit")
         fitted = torch.cat([beta_d, beta_b]) / self.world_scale
         with torch.no_grad():
             medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
         if optimizers is not None and "medium_density" in optimizers.optimizers:
             optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
         if self.config.medium_fit_holds:
-            self.densities_fitted.copy_(torch.cat([~uncertain, ~uncertain]).to(self.densities_fitted.device))
+            self.densities_fitted.copy_(torch.cat([replaced_d, replaced_b]).to(self.densities_fitted.device))
         CONSOLE.print(
             f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({self.medium_model} tie)[/] "
             f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "

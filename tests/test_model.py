@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 import warnings
@@ -861,6 +862,35 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     state = {k: v.clone() for k, v in ray.state_dict().items()}
     ray._fit_medium(step=9)
     assert all(torch.equal(state[k], v) for k, v in ray.state_dict().items())
+
+
+@pytest.mark.parametrize("parts", ["both", "attenuation", "backscatter"])
+def test_the_fit_oracle_puts_the_chosen_true_densities_in_place_of_the_fit_and_holds_them(tmp_path, parts):
+    """``medium_fit_oracle``: at ``medium_fit_step`` the chosen true densities (per metre, divided by
+    the scale) replace the fit's, the others are the fit's, and all are held; refused without a fit step."""
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
+    from seathru_nerfstudio.data.sfm_observations import SfmObservations
+
+    rng = np.random.default_rng(1)
+    beta_d, beta_b = np.array([1.3, 1.2, 0.9]), np.array([0.95, 0.85, 0.7])
+    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
+    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
+    truth = {"beta_D": [0.5, 0.6, 0.7], "beta_B": [0.2, 0.3, 0.4], "B_inf": [0.1, 0.2, 0.3]}  # not what the table says
+    (tmp_path / "medium.json").write_text(json.dumps(truth))
+    settings = {"medium_fit_step": 10, "medium_fit_oracle": tmp_path / "medium.json", "medium_fit_oracle_parts": parts}
+    m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, **settings)
+    veil = torch.sigmoid(m.medium_field.rgb_logit.detach().double()).numpy()
+    table.colours[...] = rng.uniform(0.1, 1.0, (200, 1, 3)) * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(
+        -beta_b * ranges[..., None]
+    )
+    m._fit_medium(step=9)
+    per_metre = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double()) * 2.0
+    expected_d = truth["beta_D"] if parts != "backscatter" else beta_d
+    expected_b = truth["beta_B"] if parts != "attenuation" else beta_b
+    torch.testing.assert_close(per_metre, torch.tensor([*expected_d, *expected_b], dtype=torch.float64), rtol=0.01, atol=0)
+    assert m.densities_fitted.all()
+    with pytest.raises(ValueError, match="medium_fit_oracle"):
+        tiny_model(medium_fit_step=None, medium_fit_oracle=tmp_path / "medium.json")
 
 
 @pytest.mark.parametrize("settings", [{"binary_prior_early_steps": -1}, {"binary_prior_early_mult": float("nan")}, {"binary_prior_early_mult": -1e-3}])
