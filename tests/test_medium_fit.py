@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from seathru_nerfstudio.data.sfm_observations import sfm_observations
+from seathru_nerfstudio.data.sfm_observations import at_flattest_pixels, sfm_observations
 from seathru_nerfstudio.medium_fit import (
     LOG_DENSITY_LIMIT,
     CAUCHY_TUNING,
@@ -160,6 +160,37 @@ def test_the_table_holds_true_ranges_and_colours_and_leaves_out_hidden_views():
     assert 0 < capped.num_points <= 6 < table.num_points
     with pytest.raises(ValueError, match="max_points"):
         sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)), max_points=0)
+
+
+def test_points_move_at_their_depth_to_the_flattest_pixel_within_reach():
+    """``at_flattest_pixels``: a point moves, keeping its z-depth, to the pixel of least gradient
+    within the window, only where that is strictly flatter; ties go to the nearest; nothing
+    outside the image or the window counts, and on a uniform image (or ``within`` 0) nothing moves."""
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0.0, 1.0, (12, 12, 3))  # textured everywhere
+    image[3:6, 7:10] = 0.5  # a flat patch: zero gradient at its centre (4, 8)
+    depth = np.zeros((12, 12))
+    depth[4, 6] = 1.7  # two columns from the patch's centre
+    depth[10, 1] = 2.5  # far from it
+    moved = at_flattest_pixels(depth, image, within=2)
+    assert moved[4, 8] == 1.7 and moved[4, 6] == 0.0
+    grey = image.mean(axis=-1)
+    texture = np.hypot(*np.gradient(grey))
+    window = texture[8:12, 0:4]  # (10, 1)'s window, clipped by the image
+    row, col = np.unravel_index(np.argmin(window), window.shape)
+    assert moved[8 + row, col] == 2.5 and np.count_nonzero(moved) == 2
+    np.testing.assert_array_equal(at_flattest_pixels(depth, image, within=0), depth)
+    np.testing.assert_array_equal(at_flattest_pixels(depth, np.full((12, 12, 3), 0.3), within=2), depth)
+    # equally flat pixels at one and two pixels: the nearer wins
+    ramp = np.tile(np.arange(12.0)[None, :, None] ** 2, (12, 1, 3)) / 144  # gradient grows with the column
+    ramp[6, 4] = ramp[6, 6] = 0.2  # zero gradient at (6, 5), one pixel from the point at (6, 6)...
+    ramp[6, 7] = ramp[6, 9] = 0.7  # ...and at (6, 8), two pixels from it
+    assert np.hypot(*np.gradient(ramp.mean(axis=-1)))[6, [5, 8]].max() == 0.0
+    at = np.zeros((12, 12))
+    at[6, 6] = 1.0
+    assert at_flattest_pixels(at, ramp, within=2)[6, 5] == 1.0
+    with pytest.raises(ValueError, match="flattest_within"):
+        sfm_observations([depth], [image], np.eye(4)[None, :3], *(np.ones(1) for _ in range(4)), flattest_within=-1)
 
 
 def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_path):

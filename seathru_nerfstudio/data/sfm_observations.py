@@ -5,10 +5,19 @@ A surface point at range ``z`` from a camera shows ``J e^{-β_D z} + B∞ (1 - e
 colour changes only through the medium, so a table of (range, colour) per point and view
 determines the densities once the veiling light is known (:mod:`seathru_nerfstudio.medium_fit`).
 
-Each sparse depth pixel is back-projected and projected into every view. A projection counts as
+Each sparse depth pixel is first moved to the flattest pixel near it in its own view (below), then
+back-projected and projected into every view. A projection counts as
 an observation only where that view's own sparse depth map holds a point within
 ``window`` pixels at the same z-depth (to ``depth_tolerance``): the surface is visible there,
 not hidden behind another. Colours are sampled bilinearly from the linear images.
+
+Why move the points: SfM finds its points where the image is most textured, and there a colour
+looked up between pixels, with a footprint that differs from view to view, changes with the view
+by as much as the medium does over the few per cent by which the point's range changes. The fit
+reads that as attenuation. Offline, with the true veiling light, on the three demos' SfM tables
+(session 25, docs/benchmarks.md): β_D within +3, +4, +9% (water), +1, −8, −1% (turbid), −2, +1,
++3% (fog) at the SfM pixels; moved to the flattest pixel within 2 px at the same z-depth (the
+surface taken as locally facing the camera), +2, +1, 0%, 0, −4, 0% and 0, +1, 0%.
 """
 
 from __future__ import annotations
@@ -53,6 +62,36 @@ def _bilinear(image: npt.NDArray[np.floating], u: npt.NDArray[np.float64], v: np
     )
 
 
+def at_flattest_pixels(
+    z_depth: npt.NDArray[np.floating], image: npt.NDArray[np.floating], within: int
+) -> npt.NDArray[np.float64]:
+    """The sparse z-depth map with each known pixel moved, at the same z-depth, to the pixel of
+    least image gradient (``|∇|`` of the mean over RGB, central differences) within ``within``
+    pixels (a square window), where that pixel is strictly flatter; ties go to the nearest. Two
+    points moved onto one pixel leave one."""
+    depth = np.asarray(z_depth, dtype=np.float64)
+    rows, cols = np.nonzero(depth > 0)
+    if within <= 0 or rows.size == 0:
+        return depth.copy()
+    height, width = depth.shape
+    grey = np.asarray(image, dtype=np.float64)[..., :3].mean(axis=-1)
+    gradient_y, gradient_x = np.gradient(grey)
+    texture = np.hypot(gradient_x, gradient_y)
+    best_rows, best_cols, best_texture = rows.copy(), cols.copy(), texture[rows, cols]
+    offsets = sorted(
+        ((dy, dx) for dy in range(-within, within + 1) for dx in range(-within, within + 1)), key=lambda o: o[0] ** 2 + o[1] ** 2
+    )
+    for dy, dx in offsets:
+        r, c = rows + dy, cols + dx
+        inside = (r >= 0) & (r < height) & (c >= 0) & (c < width)
+        candidate = np.where(inside, texture[np.clip(r, 0, height - 1), np.clip(c, 0, width - 1)], np.inf)
+        flatter = candidate < best_texture
+        best_rows[flatter], best_cols[flatter], best_texture[flatter] = r[flatter], c[flatter], candidate[flatter]
+    moved = np.zeros_like(depth)
+    moved[best_rows, best_cols] = depth[rows, cols]
+    return moved
+
+
 def sfm_observations(
     z_depths: Sequence[npt.NDArray[np.floating]],
     images: Sequence[npt.NDArray[np.floating]],
@@ -65,6 +104,7 @@ def sfm_observations(
     window: int = 2,
     depth_tolerance: float = 0.03,
     max_points: int = 20000,
+    flattest_within: int = 2,
 ) -> SfmObservations:
     """The observation table of the sparse depth maps' points.
 
@@ -78,19 +118,25 @@ def sfm_observations(
         depth_tolerance: ...whose z-depth matches the projection's to this fraction.
         max_points: fewer points per view where the views are many: the table is dense
             (points × views), 20000 points × 200 views is 130 MB.
+        flattest_within: each point first moves to the flattest pixel within this many pixels
+            of its own view (:func:`at_flattest_pixels`; 2, as ``window``: what the visibility test
+            already treats as the same surface); 0: the SfM pixels as they are.
 
-    ``images`` is read one view at a time (``images[j]``), so it may load lazily.
+    ``images`` is read one view at a time (``images[j]``), so it may load lazily; with
+    ``flattest_within`` each is read twice.
     """
-    if max_points_per_view < 1 or max_points < 1 or window < 0 or not depth_tolerance > 0:
+    if max_points_per_view < 1 or max_points < 1 or window < 0 or not depth_tolerance > 0 or flattest_within < 0:
         raise ValueError(
-            f"sfm_observations: need max_points_per_view >= 1, max_points >= 1, window >= 0, depth_tolerance > 0; "
-            f"got {max_points_per_view}, {max_points}, {window}, {depth_tolerance}"
+            "sfm_observations: need max_points_per_view >= 1, max_points >= 1, window >= 0, depth_tolerance > 0, "
+            f"flattest_within >= 0; got {max_points_per_view}, {max_points}, {window}, {depth_tolerance}, {flattest_within}"
         )
     max_points_per_view = max(1, min(max_points_per_view, max_points // max(1, len(z_depths))))
     if len(images) != len(z_depths):
         raise ValueError(f"sfm_observations: {len(z_depths)} depth maps but {len(images)} images")
     c2w = np.asarray(camera_to_worlds, dtype=np.float64)
     depths = [np.asarray(d, dtype=np.float64) for d in z_depths]
+    if flattest_within > 0:
+        depths = [at_flattest_pixels(depth, images[i], flattest_within) for i, depth in enumerate(depths)]
     points = [back_project(depth, c2w[i], fx[i], fy[i], cx[i], cy[i], max_points_per_view) for i, depth in enumerate(depths)]
     points = [p for p in points if len(p)]
     if not points:
