@@ -361,6 +361,19 @@ class SeathruModelConfig(NerfactoModelConfig):
             )
 
 
+def read_true_medium(path: Path) -> dict:
+    """``beta_D``, ``beta_B`` (1/world unit) and ``B_inf`` of a ``medium.json`` as ``seathru-synth``
+    writes it, three numbers each; a ``ValueError`` naming the file if it is not one."""
+    try:
+        truth = json.loads(Path(path).read_text())
+        values = {key: [float(v) for v in truth[key]] for key in ("beta_D", "beta_B", "B_inf")}
+    except (OSError, ValueError, KeyError, TypeError) as error:
+        raise ValueError(f"seathru: {path} is not a medium.json with beta_D, beta_B and B_inf: {error!r}") from error
+    if any(len(v) != 3 or not all(math.isfinite(x) for x in v) for v in values.values()):
+        raise ValueError(f"seathru: {path}: beta_D, beta_B and B_inf must be three finite numbers each")
+    return values
+
+
 class SeathruModel(NerfactoModel):
     """nerfacto's object field rendered through a scattering medium (Levy et al. 2023)."""
 
@@ -384,6 +397,8 @@ class SeathruModel(NerfactoModel):
                 "positive (do all cameras sit at one point?)"
             )
         self.medium_field = self._build_medium()
+        # read now, so a bad file fails at set-up and not at medium_fit_step
+        self.fit_oracle = read_true_medium(self.config.medium_fit_oracle) if self.config.medium_fit_oracle else None
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
         self.register_buffer("medium_model_code", torch.tensor(code, dtype=torch.long))
         """Index in ``MEDIUM_MODELS`` of the medium model in use (``UNDECIDED``: ``auto`` before its
@@ -432,7 +447,7 @@ class SeathruModel(NerfactoModel):
 
     def _build_medium(self):
         if self.config.medium_oracle is not None:
-            truth = json.loads(Path(self.config.medium_oracle).read_text())
+            truth = read_true_medium(self.config.medium_oracle)
             if self.config.medium_oracle_learns:
                 densities = [b / self.world_scale for b in [*truth["beta_D"], *truth["beta_B"]]]
                 return SceneMedium(init_density=densities, init_rgb=truth["B_inf"])
@@ -621,7 +636,7 @@ class SeathruModel(NerfactoModel):
         )
         uncertain = fit.attenuation_log_error > self.config.medium_fit_max_log_error
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
-        oracle_parts = self.config.medium_fit_oracle_parts if self.config.medium_fit_oracle is not None else None
+        oracle_parts = self.config.medium_fit_oracle_parts if self.fit_oracle is not None else None
         if uncertain.all() and oracle_parts is None:  # nothing to replace: leave the parameters and their Adam state alone
             CONSOLE.print(
                 f"[bold]seathru step {step}: medium fit to {table.num_observations} SfM observations kept the "
@@ -632,7 +647,7 @@ class SeathruModel(NerfactoModel):
         beta_b = torch.where(uncertain, densities[3:], fit.backscatter)
         replaced_d, replaced_b = ~uncertain, ~uncertain
         if oracle_parts is not None:  # diagnostic: the truth in place of the fit (and held like it)
-            truth = json.loads(Path(self.config.medium_fit_oracle).read_text())
+            truth = self.fit_oracle
             if oracle_parts != "backscatter":
                 beta_d, replaced_d = torch.tensor(truth["beta_D"], dtype=beta_d.dtype), torch.ones_like(uncertain)
             if oracle_parts != "attenuation":

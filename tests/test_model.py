@@ -891,6 +891,11 @@ def test_the_fit_oracle_puts_the_chosen_true_densities_in_place_of_the_fit_and_h
     assert m.densities_fitted.all()
     with pytest.raises(ValueError, match="medium_fit_oracle"):
         tiny_model(medium_fit_step=None, medium_fit_oracle=tmp_path / "medium.json")
+    # a file that is not a medium fails when the model is built, naming the file, not at the fit step
+    (tmp_path / "bad.json").write_text(json.dumps({"beta_D": [1.0, 2.0]}))
+    for bad in (tmp_path / "bad.json", tmp_path / "missing.json"):
+        with pytest.raises(ValueError, match=bad.name):
+            tiny_model(medium_fit_step=10, medium_fit_oracle=bad)
 
 
 @pytest.mark.parametrize("settings", [{"binary_prior_early_steps": -1}, {"binary_prior_early_mult": float("nan")}, {"binary_prior_early_mult": -1e-3}])
