@@ -17,7 +17,7 @@ from torch import Tensor
 from torchmetrics.functional import structural_similarity_index_measure
 from torchmetrics.image.lpip import LearnedPerceptualImagePatchSimilarity
 
-from seathru_nerfstudio.viewer import linear_to_srgb
+from seathru_nerfstudio.colour import linear_to_srgb
 
 ALEXNET_WEIGHTS = "alexnet-owt-7be5be79.pth"
 """torchvision's AlexNet checkpoint that torchmetrics' LPIPS loads (from the torch hub cache)."""

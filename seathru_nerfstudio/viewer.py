@@ -41,6 +41,7 @@ from torch import Tensor, nn
 
 from nerfstudio.viewer.viewer_elements import ViewerCheckbox, ViewerRGB, ViewerSlider
 
+from seathru_nerfstudio.colour import linear_to_srgb, srgb_to_linear
 from seathru_nerfstudio.medium_field import MediumOutputs
 
 COLOUR_OUTPUTS = ("rgb", "clean", "direct", "backscatter", "medium_rgb")
@@ -57,18 +58,6 @@ DEFAULT_VEIL_SRGB = (30, 110, 160)
 """Initial colour of the veiling-light picker (8-bit sRGB, a deep blue-green)."""
 SPLIT_LINE = 0.9
 """Grey level of the one-pixel line between the two halves of ``water_split``."""
-
-
-def linear_to_srgb(x: Tensor) -> Tensor:
-    """sRGB encoding (IEC 61966-2-1) of linear values in ``[0, 1]``."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.0031308, 12.92 * x, 1.055 * x.clamp_min(0.0031308) ** (1.0 / 2.4) - 0.055)
-
-
-def srgb_to_linear(x: Tensor) -> Tensor:
-    """Inverse of :func:`linear_to_srgb`."""
-    x = x.clamp(0.0, 1.0)
-    return torch.where(x <= 0.04045, x / 12.92, ((x.clamp_min(0.04045) + 0.055) / 1.055) ** 2.4)
 
 
 def tone(image: Tensor, exposure: float, srgb: bool) -> Tensor:

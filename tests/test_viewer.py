@@ -138,7 +138,8 @@ def test_controls_are_viewer_elements_in_their_folder_and_hold_no_state(pipeline
 
 
 def test_display_outputs_water_toggle_density_veil_exposure(pipeline, controls):
-    from seathru_nerfstudio.viewer import DENSITY_OUTPUTS, DISPLAY_OUTPUTS, linear_to_srgb
+    from seathru_nerfstudio.colour import linear_to_srgb
+    from seathru_nerfstudio.viewer import DENSITY_OUTPUTS, DISPLAY_OUTPUTS
 
     cam = eval_camera(pipeline)
     base = render(pipeline, cam)

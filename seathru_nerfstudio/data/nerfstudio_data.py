@@ -40,16 +40,8 @@ from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, legacy_paths
 from seathru_nerfstudio.data.linear_images import read_linear_image
 from seathru_nerfstudio.data.range_diversity import RangeSpread, range_spread
 from seathru_nerfstudio.data.sfm_observations import SfmObservations, sfm_observations
+from seathru_nerfstudio.metadata_keys import EXTENT_KEY, RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY
 
-RANGE_SPREAD_KEY = "sfm_range_spread"
-"""Metadata key (training split): :class:`RangeSpread` of the SfM points, world units."""
-SFM_OBSERVATIONS_KEY = "sfm_observations"
-"""Metadata key (training split, with ``sfm_observations``): :class:`SfmObservations`, world units."""
-SCALE_KEY = "dataparser_scale"
-"""Metadata key: scene units per world unit (a float)."""
-EXTENT_KEY = "frustum_extent"
-"""Metadata key: the largest ``|x|∞`` (scene units) of the split's view frustums cut at the far
-bound (:func:`frustum_extent`), where the model's scene contraction starts."""
 NEAR_PERCENTILE = 0.1
 """Per image, the near bound is this percentile of its SfM depths (LLFF's choice), so that a
 stray point does not set it; the far bound the opposite percentile."""
