@@ -62,7 +62,7 @@ def _optimizers(max_steps: int) -> dict:
         # they absorb the young object field's errors (measured: green beta_D 1.9 -> 8.6 /m within
         # 150 steps of the object starting at 5e-2). A ramp 1e-3 -> 5e-2 over 400 steps found the
         # attenuation in one run and ran away (beta_D 2.0 /m, clean 5.4 dB) in another: not the
-        # default (docs/benchmarks.md, session 8).
+        # default (d826fe6, 2026-11-24; docs/history.md).
         "medium_density": adam(),
         "camera_opt": {
             "optimizer": AdamOptimizerConfig(lr=1e-3, eps=1e-15),

@@ -6,14 +6,14 @@ shell ``1 < |x|∞ < 2``, where the metric resolution falls as ``1/|x|²``. nerf
 so that the cameras fill that cube, which suits cameras around an object. A forward-facing
 underwater rig looks *out* of its cube: on the demos every surface sits 3 to 20 scene units away,
 and turbid's far wall (8 m) gets grid cells about 0.5 m deep, so its surfaces came out as 10%-thick
-ramps whose median sits 4% behind the truth (docs/benchmarks.md, session 22).
+ramps whose median sits 4% behind the truth (b2f1003, 2026-11-26; docs/history.md).
 
 :class:`ContractionBeyond` contracts ``x / radius`` instead, with ``radius`` the extent of what
 the cameras can see up to the scene's far bound
 (:func:`seathru_nerfstudio.data.nerfstudio_data.frustum_extent`): the scene is resolved
-linearly, and only the space behind it is contracted (``SeathruModelConfig.contraction_at_scene``,
-on by default since session 24; on turbid it fixes the far surfaces, and with
-``veil_from_open_rays`` the open water stays empty).
+linearly, and only the space behind it is contracted. The model has used it since 88414fa
+(2026-11-26): on turbid it fixes the far surfaces (far-third depth error 0.085 -> 0.011), and with
+the veiling light learned from open rays the open water stays empty (docs/history.md).
 """
 
 from __future__ import annotations

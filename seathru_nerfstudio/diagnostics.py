@@ -18,7 +18,7 @@ line every ``diagnostics_every`` steps):
   object's attenuated colour. One channel near 0 while the others are not is a dead colour
   channel: the object colour's sigmoid saturated at black and the backscatter explains that
   channel alone, which shows as a pink or purple ``clean`` image (measured on the water and fog
-  demos, docs/benchmarks.md, session 16); the log line then names the channel;
+  demos on 2026-11-25: docs/history.md, *A dead colour channel*); the log line then names the channel;
 * ``medium_model`` (added by the model): the medium model in use, as its index in
   :data:`~seathru_nerfstudio.medium_field.MEDIUM_MODELS` (-1: ``auto`` before its decision).
 """

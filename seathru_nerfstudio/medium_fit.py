@@ -11,7 +11,7 @@ the backscatter density, but the open water shows it directly (the first stage l
 
 Why this exists: the images determine ``β_D`` only through how a point's colour changes with
 its range, and gradient descent on the radiance field follows that weak signal slowly (water:
-22–33% high after 1500 steps, docs/benchmarks.md, session 16). Here the same information is
+22–33% high after 1500 steps on 2026-11-25; docs/history.md). Here the same information is
 fitted directly, on a few thousand numbers (L-BFGS, a second or two). The fit is only as good as the veiling light given
 to it; channels whose backscatter is tiny (small ``B∞``) leave ``β_B`` undetermined.
 
@@ -23,7 +23,7 @@ Some observations break the model: a point on a silhouette against open water is
 others. Least squares lets those few pull the densities (water demo, with the true veiling light:
 red β_B +21%; turbid: green β_D −37%, β_B −31%). The fit is therefore robust: iteratively reweighted
 least squares with Cauchy weights (:func:`cauchy_weights`), which bring both demos within 11%
-(session 21, docs/benchmarks.md).
+(01224da, 2026-11-26; docs/history.md, *The medium fitted to the SfM points*).
 
 Where a channel's ``β_D`` and ``β_B`` trade off along a valley of the residual, the fit lands
 anywhere on it, so each fitted log-density comes with a Gauss–Newton standard error (see

@@ -5,7 +5,7 @@ colour ``J`` absorbs any common factor, so the attenuation ``β_D`` is determine
 point's brightness changes between views *at different ranges*. A flat forward-facing rig keeps
 those differences small (on the water demo a point's range varies by 5 cm between the views that
 see it, 3% of its range), and a 25% error in ``β_D`` then costs the images almost nothing
-(docs/benchmarks.md, session 11). This module measures that spread from what every capture has:
+(0eb30e8, 2026-11-25; docs/history.md). This module measures that spread from what every capture has:
 the sparse SfM depths and the poses, before any training.
 """
 

@@ -4,7 +4,7 @@ nerfstudio's ``ParallelDataManager`` samples the training rays in a spawned proc
 generators nobody seeds, so two runs with the same ``--machine.seed`` train on different rays
 and end apart. On the tiny scene of ``tests/test_decomposition.py`` that spread was large: the
 clean image's rise over training measured anywhere from +0.1 to +1.7 dB on unchanged code
-(session 12). With this sampler a run is repeatable; different seeds still give different runs.
+(2026-11-25, before c85090d). With this sampler a run is repeatable; different seeds still give different runs.
 """
 
 from __future__ import annotations

@@ -15,7 +15,7 @@ Why move the points: SfM finds its points where the image is most textured, and 
 looked up between pixels, with a footprint that differs from view to view, changes with the view
 by as much as the medium does over the few per cent by which the point's range changes. The fit
 reads that as attenuation. Offline, with the true veiling light, on the three demos' SfM tables
-(session 25, docs/benchmarks.md), the fitted β_D was off by +3, +4, +9% (water), +1, −8, −1%
+(5140fdb, 2026-11-27; docs/history.md), the fitted β_D was off by +3, +4, +9% (water), +1, −8, −1%
 (turbid) and −2, +1, +3% (fog) at the SfM pixels; moved to the flattest pixel within 2 px at the
 same z-depth (the surface taken as locally facing the camera), by +2, +1, 0%, +1, −4, +1% and
 −1, +1, 0%. Points sampled at low-texture pixels with their true depth fit within 1–3%.
