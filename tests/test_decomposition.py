@@ -26,7 +26,7 @@ FIRST_STAGE = 50
 FIT_STEP = 150
 """The medium fit (``medium_fit_step``), moved from 500 to half-way, once the veiling light has
 settled: fitted at step 60 (blue B∞ still 15% low) the clean image ended at 14.8 dB, at 150 at
-16.2 dB, with the defaults' excess term and without the fit 11.3 (session 18). The prior's strong
+16.2 dB, with the defaults' excess term and without the fit 11.3 (2026-11-26, f139320). The prior's strong
 early weight lasts to the fit (``binary_prior_early_steps`` None)."""
 
 
@@ -52,9 +52,10 @@ def run(tmp_path_factory):
 def test_clean_error_falls_and_the_surfaces_are_at_their_depth(run):
     """The clean image improves once the object colour learns, and the surfaces move to their
     depth. Without the medium fit the rise on this tiny scene was small and depended on the seed:
-    +0.78, +1.16 and +0.45 dB for seeds 42, 7 and 3 on one thread (session 13); with the excess
-    term and no fit it fell (-1.6 dB). With both, seed 42: +3.3 dB (12.9 -> 16.2, session 18). The
-    margin stays 0.3 dB; the full-size figures are in docs/benchmarks.md."""
+    +0.78, +1.16 and +0.45 dB for seeds 42, 7 and 3 on one thread (2026-11-25, 0729532); with the excess
+    term and no fit it fell (-1.6 dB). With both, seed 42: +3.3 dB (12.9 -> 16.2, 2026-11-26, f139320).
+    The margin stays 0.3 dB; the full-size figures are in docs/benchmarks.md, their history in
+    docs/history.md."""
     early, late = run
     assert late["step"] == ITERATIONS
     assert late["metrics"]["clean_psnr"] > early["metrics"]["clean_psnr"] + 0.3, (early["metrics"], late["metrics"])

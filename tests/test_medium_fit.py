@@ -195,8 +195,8 @@ def test_points_move_at_their_depth_to_the_flattest_pixel_within_reach():
 
 def test_on_a_rendered_scene_the_fit_finds_the_attenuation_the_start_missed(tmp_path):
     """seathru-synth water (64x48, 12 views), the dataparser's table, the true veiling light: every
-    channel's attenuation ends within 30% of the truth, from a start 46-111% above it. (Session 17,
-    on the 160x120 demo: within 9%.)"""
+    channel's attenuation ends within 30% of the truth, from a start 46-111% above it. (On the 160x120
+    demo, 2026-11-26, bdb49e1: within 9%.)"""
     import json
 
     from seathru_nerfstudio.data.nerfstudio_data import SFM_OBSERVATIONS_KEY, SeathruNerfstudioDataParserConfig

@@ -9,7 +9,7 @@ rendered image, which lives in a WebGL canvas and not in the page's DOM, is poll
 
 Two records of a render: the screenshot (what the user sees) and the image the browser received
 (viser's ``BackgroundImageMessage`` on the websocket, decoded). Screenshots of one and the same
-received image differ from capture to capture by up to 1.9 grey levels on average (session 18:
+received image differ from capture to capture by up to 1.9 grey levels on average (2026-11-26, 1a660fb:
 the server's images compared equal while the screenshots did not), so equality of two renders is
 asserted on the received images, and the screenshots show that the canvas changes.
 """
