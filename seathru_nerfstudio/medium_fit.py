@@ -32,7 +32,7 @@ anywhere on it, so each fitted log-density comes with a Gauss–Newton standard 
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Callable, NamedTuple
 
 import torch
 from jaxtyping import Float
@@ -153,6 +153,57 @@ def tied_log_density_errors(
     return worst[:3], worst[3:]
 
 
+NEWTON_STEP_LIMIT = 1e-12
+"""The Newton polish (:func:`newton_polished`) stops once a step moves no log-density by more."""
+
+
+def newton_polished(loss_of: Callable[[Tensor], Tensor], start: Float[Tensor, "K"], max_steps: int = 30) -> Float[Tensor, "K"]:
+    """``start`` moved by Newton steps to the minimum of ``loss_of`` near it, to floating-point precision.
+
+    L-BFGS stops on absolute tolerances (a change of the loss, or a slope ``g·d``, below 1e-15):
+    on a mean squared residual of ~1e-4 it stops where the last bits of its sums decide, so the
+    same data in another order (or another machine's reductions) ended 0.3% apart in ``β_D`` and
+    8.5% apart in its standard error. Newton's method on the few log-densities converges
+    quadratically from there: each step solves ``H δ = -g`` within the directions of positive
+    curvature (eigenvalues of ``H`` above ``1e-10 × max``; a flat direction, which the data leave
+    undetermined, stays where it is), halved until the loss does not rise by more than its
+    rounding (``1e-12`` relative, at most 30 halvings). It stops once a step moves no value by
+    more than :data:`NEWTON_STEP_LIMIT`, or where the curvature or the loss is not finite."""
+    x = start.detach().clone()
+    for _ in range(max_steps):
+        at = x.clone().requires_grad_(True)
+        loss = loss_of(at)
+        if not loss.requires_grad:
+            break  # the loss does not depend on x
+        (gradient,) = torch.autograd.grad(loss, at, create_graph=True)
+        if not gradient.requires_grad:
+            break  # linear in x: no curvature to step by
+        rows = [torch.autograd.grad(gradient[k], at, retain_graph=True, allow_unused=True)[0] for k in range(x.numel())]
+        hessian = torch.stack([torch.zeros_like(x) if row is None else row for row in rows]).detach()
+        hessian = (hessian + hessian.T) / 2
+        gradient, loss = gradient.detach(), loss.detach()
+        if not (torch.isfinite(hessian).all() and torch.isfinite(gradient).all() and torch.isfinite(loss)):
+            break
+        curvature, directions = torch.linalg.eigh(hessian)
+        curved = curvature > 1e-10 * curvature.abs().max()
+        if not bool(curved.any()):
+            break
+        along = directions.T @ gradient
+        step = -directions @ torch.where(curved, along / torch.where(curved, curvature, 1.0), 0.0)
+        for _ in range(30):
+            with torch.no_grad():
+                trial = loss_of(x + step)
+            if torch.isfinite(trial) and trial <= loss + 1e-12 * loss.abs():
+                break
+            step = step / 2
+        else:
+            break  # no step lowers the loss: x is the minimum to rounding
+        x = x + step
+        if float(step.abs().max()) <= NEWTON_STEP_LIMIT:
+            break
+    return x
+
+
 def fit_densities(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
@@ -163,7 +214,8 @@ def fit_densities(
     tie: str = "seathru",
     reweightings: int = 3,
 ) -> DensityFit:
-    """``β_D, β_B`` in 1/world unit, fitted by L-BFGS on the log-densities, with the mean squared
+    """``β_D, β_B`` in 1/world unit, fitted by L-BFGS on the log-densities and polished by Newton
+    steps (:func:`newton_polished`: the same data in any order give the same fit), with the mean squared
     residual and the standard errors of the log-densities (:func:`log_density_errors`;
     :func:`tied_log_density_errors` under a ``tie``, the medium model whose tied densities are
     fitted as one (:func:`~seathru_nerfstudio.medium_field.tie_matrix`); its free densities start
@@ -192,9 +244,13 @@ def fit_densities(
     start_log = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
     observed_weight = weight
 
+    def mean_squared_residual(free: Tensor, weight: Tensor) -> Tensor:
+        densities = torch.exp(tied @ free)
+        _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
+        return ((predicted - rgb) ** 2 * weight[..., None]).sum() / (weight.sum() * 3)
+
     def fitted_log_densities(start_free: Tensor, weight: Tensor) -> Tensor:
         free = start_free.clone().requires_grad_(True)
-        count = weight.sum() * 3
         optimizer = torch.optim.LBFGS(
             [free], lr=1.0, max_iter=max_iterations, tolerance_grad=1e-12, tolerance_change=1e-15,
             line_search_fn="strong_wolfe",
@@ -202,15 +258,15 @@ def fit_densities(
 
         def closure() -> Tensor:
             optimizer.zero_grad()
-            densities = torch.exp(tied @ free)
-            _, predicted = best_colours(z, rgb, weight, densities[:3], densities[3:], veil)
-            loss = ((predicted - rgb) ** 2 * weight[..., None]).sum() / count
+            loss = mean_squared_residual(free, weight)
             loss.backward()
             return loss
 
         optimizer.step(closure)
         found = free.detach()
-        return found if torch.isfinite(found).all() else start_free  # a diverged search: keep its start
+        if not torch.isfinite(found).all():
+            return start_free  # a diverged search: keep its start
+        return newton_polished(lambda f: mean_squared_residual(f, weight), found)
 
     start_free = ((tied.T @ start_log) / tied.sum(dim=0)).detach()
     free_fit = fitted_log_densities(start_free, weight)
