@@ -11,17 +11,17 @@ from typing import Any, Dict
 import torch
 
 from nerfstudio.configs.base_config import MachineConfig, ViewerConfig
-from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManager, ParallelDataManagerConfig
+from nerfstudio.data.datamanagers.parallel_datamanager import ParallelDataManagerConfig
 from nerfstudio.engine.optimizers import AdamOptimizerConfig
 from nerfstudio.engine.schedulers import ExponentialDecaySchedulerConfig
 from nerfstudio.engine.trainer import TrainerConfig
 from nerfstudio.plugins.types import MethodSpecification
 
 from seathru_nerfstudio import compat
-from seathru_nerfstudio.data.linear_images import LinearImageDataset
+from seathru_nerfstudio.data.datamanager import SeathruDataManager  # its worker follows the trainer, its death ends the run
 from seathru_nerfstudio.data.nerfstudio_data import SeathruNerfstudioDataParserConfig
 from seathru_nerfstudio.data.seeded_sampler import SeededPixelSamplerConfig  # repeatable runs
-from seathru_nerfstudio.model import SeathruModelConfig
+from seathru_nerfstudio.model_config import SeathruModelConfig
 from seathru_nerfstudio.pipeline import SeathruPipelineConfig  # evaluations without the viewer's water controls
 from seathru_nerfstudio.training import SeathruTrainerConfig  # non-finite guard, crash-safe checkpoints
 
@@ -90,7 +90,7 @@ def method_config(
         machine=_machine(),
         pipeline=SeathruPipelineConfig(
             datamanager=ParallelDataManagerConfig(
-                _target=ParallelDataManager[LinearImageDataset],
+                _target=SeathruDataManager,
                 dataparser=SeathruNerfstudioDataParserConfig(),
                 train_num_rays_per_batch=rays,
                 eval_num_rays_per_batch=rays,

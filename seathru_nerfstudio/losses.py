@@ -1,12 +1,18 @@
-"""Losses of SeaThru-NeRF (sec. 3.5): RawNeRF relative L2 and the binary transmittance prior."""
+"""Losses of SeaThru-NeRF (sec. 3.5): RawNeRF relative L2 and the binary transmittance prior; the
+backscatter excess and envelope terms; the DS-NeRF depth loss on sparse SfM depths."""
 
 from __future__ import annotations
 
 import math
 
+from typing import Optional
+
 import torch
 from jaxtyping import Float
 from torch import Tensor
+
+from nerfstudio.cameras.rays import RaySamples
+from nerfstudio.model_components.losses import DepthLossType, depth_loss
 
 
 def rawnerf_loss(
@@ -106,3 +112,43 @@ def depth_kernel_variance(
     spacing = torch.gather(ends - starts, -2, nearest)
     largest = torch.finfo(spacing.dtype).max ** 0.5  # its square is still finite
     return torch.clamp(spacing.detach(), min=sigma_floor).clamp(max=largest) ** 2
+
+
+def sfm_depth_loss(
+    weights: Float[Tensor, "*batch S 1"],
+    ray_samples: RaySamples,
+    expected_depth: Float[Tensor, "*batch 1"],
+    known_depth: Float[Tensor, "*batch 1"],
+    directions_norm: Float[Tensor, "*batch 1"],
+    sigma_floor: float,
+    is_euclidean: bool = False,
+    accumulation: Optional[Float[Tensor, "*batch 1"]] = None,
+) -> Float[Tensor, ""]:
+    """nerfstudio's DS-NeRF depth loss on the object weights, averaged over the rays whose depth is
+    known (not over the batch, so its weight does not depend on how sparse the SfM points are).
+
+    ``known_depth``: z-depth in scene units, 0 where unknown (``is_euclidean``: the range, ``inf``
+    for open water, whose object opacity ``accumulation`` is then pushed to 0). The kernel's
+    variance is :func:`depth_kernel_variance` with floor ``sigma_floor`` (scene units).
+    """
+    hit = torch.isfinite(known_depth)
+    termination = torch.where(hit, known_depth, torch.zeros_like(known_depth))
+    frustums = ray_samples.frustums
+    ray_range = termination if is_euclidean else termination * directions_norm
+    variance = depth_kernel_variance(frustums.starts, frustums.ends, ray_range, sigma_floor)
+    loss = depth_loss(
+        weights=weights,
+        ray_samples=ray_samples,
+        termination_depth=termination,
+        predicted_depth=expected_depth,
+        sigma=variance,  # nerfstudio's DS-NeRF loss divides by 2 * sigma: it takes the variance
+        directions_norm=directions_norm,
+        is_euclidean=is_euclidean,
+        depth_loss_type=DepthLossType.DS_NERF,
+    )
+    known = (hit & (termination > 0)).float()
+    loss = loss * known.numel() / torch.clamp(known.sum(), min=1.0)
+    if not is_euclidean or accumulation is None:
+        return loss
+    open_water = (~hit).float()
+    return loss + torch.sum(accumulation * open_water) / max(1.0, float(open_water.numel()))

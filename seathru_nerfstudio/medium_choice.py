@@ -28,9 +28,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence, Tuple
+from typing import Any, Dict, List, Optional, Sequence, Tuple
+
+import torch
+
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from seathru_nerfstudio.diagnostics import CHANNELS
+from seathru_nerfstudio.medium_field import MEDIUM_MODELS
+from seathru_nerfstudio.phases import TrainingPhases
 
 RGB = Tuple[float, float, float]
+UNDECIDED = -1
+"""``medium_model_code`` of an ``auto`` run before its decision (it renders ``seathru``)."""
 
 
 @dataclass(frozen=True)
@@ -96,3 +106,91 @@ def choose_medium_model(evidence: MediumEvidence, rule: ChoiceRule = ChoiceRule(
         if ties <= rule.tie_ratio:
             return "uniform", f"{facts}: attenuation ties to backscatter (<= {rule.tie_ratio:g})"
     return "seathru", f"{facts}: no simpler model fits"
+
+
+def _state_copy(module: torch.nn.Module) -> Dict[str, torch.Tensor]:
+    return {name: value.detach().clone() for name, value in module.state_dict().items()}
+
+
+class AutoMediumChoice:
+    """``auto`` in training, as a callback: it gathers :class:`MediumEvidence` over the
+    ``research.auto_evidence_steps`` before ``research.auto_decision_step``, then sets the model's
+    ``medium_model_code`` to :func:`choose_medium_model`'s choice. Only the tying of the medium
+    changes; for ``none`` the object field and the proposal networks restart from their initial
+    state (what they learned under a medium makes up for an attenuation clear air does not have),
+    and for ``fog``/``uniform``/``basic`` the model blends from ``seathru`` (``medium_model_step``)."""
+
+    def __init__(self, model: Any) -> None:
+        self.model = model
+        self.evidence: List[MediumEvidence] = []
+        self.initial_object: Optional[Dict[str, Dict[str, torch.Tensor]]] = {
+            "field": _state_copy(model.field),
+            "proposal_networks": _state_copy(model.proposal_networks),
+        }
+        """Copies of the object field's and the proposal networks' state to restart ``none`` from."""
+
+    @property
+    def decided(self) -> bool:
+        return int(self.model.medium_model_code) != UNDECIDED
+
+    def record(self, values: Dict[str, torch.Tensor], step: Optional[int]) -> None:
+        """Keep this step's medium diagnostics (:func:`seathru_nerfstudio.diagnostics.decomposition`)
+        if the decision is near."""
+        research = self.model.config.research
+        if self.decided or step is None or step < research.auto_decision_step - research.auto_evidence_steps:
+            return
+
+        def rgb(name: str) -> RGB:
+            return tuple(float(values[f"medium_{name}_{c}"]) for c in CHANNELS)  # type: ignore[return-value]
+
+        self.evidence.append(
+            MediumEvidence(
+                backscatter_share=float(values["backscatter_share"]),
+                beta_D=rgb("beta_D"),
+                beta_B=rgb("beta_B"),
+                B_inf=rgb("B_inf"),
+            )
+        )
+
+    def mean_evidence(self) -> Optional[MediumEvidence]:
+        """The mean of the recorded evidence over every process of a distributed run (so that all
+        of them choose the same model); ``None`` if nothing was recorded."""
+        if not self.evidence:
+            return None
+        rows = torch.tensor(
+            [[e.backscatter_share, *e.beta_D, *e.beta_B, *e.B_inf] for e in self.evidence], dtype=torch.float64
+        )
+        mean = rows.mean(dim=0)
+        if torch.distributed.is_available() and torch.distributed.is_initialized():
+            mean = mean.to(self.model.device)
+            torch.distributed.all_reduce(mean)
+            mean = mean.cpu() / torch.distributed.get_world_size()
+        v = [float(x) for x in mean]
+        return MediumEvidence(
+            backscatter_share=v[0], beta_D=tuple(v[1:4]), beta_B=tuple(v[4:7]), B_inf=tuple(v[7:10]),  # type: ignore[arg-type]
+            far_range=self.model.far_range,
+        )
+
+    def after_step(self, step: int, optimizers: Any = None) -> None:
+        """At ``research.auto_decision_step``: decide. ``optimizers``: the trainer's, whose state of
+        the restarted parameter groups is cleared."""
+        model = self.model
+        if self.decided or not TrainingPhases(model.config, step).reached(model.config.research.auto_decision_step):
+            return
+        evidence = self.mean_evidence()
+        if evidence is None:
+            return  # resumed right before the decision: gather the evidence first
+        chosen, reason = choose_medium_model(evidence, model.config.research.auto_rule)
+        model.medium_model_code.fill_(MEDIUM_MODELS.index(chosen))
+        if chosen == "none" and self.initial_object is not None:
+            model.field.load_state_dict(self.initial_object["field"])
+            model.proposal_networks.load_state_dict(self.initial_object["proposal_networks"])
+            for group in ("fields", "proposal_networks"):
+                if optimizers is not None and group in optimizers.optimizers:
+                    optimizers.optimizers[group].state.clear()  # Adam restarts with the parameters
+            reason += "; the object field restarts from its initial state"
+        elif chosen != "seathru":  # the warm-up's own model: nothing to blend
+            model.medium_model_step.fill_(step + 1)
+        self.initial_object = None
+        self.evidence.clear()
+        CONSOLE.print(f"[bold]seathru step {step}: medium model auto -> {chosen}[/] ({reason})")

@@ -32,13 +32,18 @@ anywhere on it, so each fitted log-density comes with a Gauss–Newton standard 
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Any, Callable, NamedTuple
 
 import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from seathru_nerfstudio.medium_field import tie_matrix
+from nerfstudio.utils.rich_utils import CONSOLE
+
+from seathru_nerfstudio.medium_field import inverse_softplus, tie_matrix
+from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
+from seathru_nerfstudio.oracles import replace_with_truth
+from seathru_nerfstudio.phases import TrainingPhases
 
 
 LOG_DENSITY_LIMIT = 20.7
@@ -299,3 +304,62 @@ def fit_densities(
         ])  # fmt: skip
         errors = tied_log_density_errors(squared_error, hessians, tied, num_points)
     return DensityFit(densities[:3], densities[3:], final, *errors)
+
+
+def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
+    """The ``medium_fit_step`` callback: replace the scene medium's densities by
+    :func:`fit_densities` on the dataparser's SfM observation table, under the veiling light learned
+    so far, tied as the medium model in use renders them, and hold them from then on
+    (``model.densities_fitted``). A channel whose standard error of ``ln β_D`` is above
+    ``research.medium_fit_max_log_error`` keeps its trained densities and trains on.
+    ``optimizers``: the trainer's, whose ``medium_density`` Adam state is cleared."""
+    config = model.config
+    if not (model.fits_medium and TrainingPhases(config, step).ends(config.medium_fit_step)):
+        return
+    table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
+    if table is None or table.num_observations == 0:
+        CONSOLE.print(
+            f"[bold yellow]seathru step {step}: no SfM observations to fit the medium to (no SfM depth maps or "
+            "COLMAP tracks); the densities train on"
+        )
+        return
+    if model.medium_model == "none":
+        CONSOLE.print(f"[bold]seathru step {step}: no medium to fit (medium model none)")
+        return
+    medium = model.medium_field
+    with torch.no_grad():
+        densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale
+        veil = torch.sigmoid(medium.rgb_logit.double())
+    fit = fit_densities(
+        torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:],
+        tie=model.medium_model,
+    )  # fmt: skip
+    model.fit_log_error.copy_(fit.attenuation_log_error.to(model.fit_log_error))
+    uncertain = fit.attenuation_log_error > config.research.medium_fit_max_log_error
+    show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+    if uncertain.all() and model.fit_oracle is None:  # nothing to replace: leave the parameters and Adam alone
+        CONSOLE.print(
+            f"[bold]seathru step {step}: medium fit to {table.num_observations} SfM observations kept the trained "
+            f"densities (standard error of ln beta_D {show(fit.attenuation_log_error)})"
+        )
+        return
+    beta_d = torch.where(uncertain, densities[:3], fit.attenuation)
+    beta_b = torch.where(uncertain, densities[3:], fit.backscatter)
+    replaced = torch.cat([~uncertain, ~uncertain])
+    if model.fit_oracle is not None:  # diagnostic: the truth in place of the fit, held like it
+        parts = config.research.medium_fit_oracle_parts
+        beta_d, beta_b, replaced = replace_with_truth(model.fit_oracle, parts, beta_d, beta_b, ~uncertain)
+        CONSOLE.print(f"[bold]seathru step {step}: medium_fit_oracle: the true densities ({parts}) replace the fit")
+    fitted = torch.cat([beta_d, beta_b]) / model.world_scale
+    with torch.no_grad():
+        medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
+    if optimizers is not None and "medium_density" in optimizers.optimizers:
+        optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
+    model.densities_fitted.copy_(replaced.to(model.densities_fitted.device))
+    CONSOLE.print(
+        f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({model.medium_model} tie)[/] "
+        f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
+        f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
+        f"standard error of ln beta_D {show(fit.attenuation_log_error)}"
+        + (f", kept the trained values of channel(s) {uncertain.nonzero().flatten().tolist()}" if uncertain.any() else "")
+    )

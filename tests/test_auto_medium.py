@@ -31,7 +31,7 @@ def train_auto(preset: str, root: Path):
     model = config.pipeline.model
     model.medium_model = "auto"
     model.medium_first_steps = FIRST_STAGE
-    model.medium_auto_decision_step = DECISION
+    model.research.auto_decision_step = DECISION
     config.pipeline.datamanager.train_num_rays_per_batch = 1024
     trainer = config.setup(local_rank=0, world_size=1)
     trainer.setup()

@@ -107,6 +107,7 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
 
     assert m["psnr_srgb"] == pytest.approx(-20 * math.log10(srgb(0.4) - srgb(0.3)), abs=1e-3)
     assert m["clean_psnr"] == pytest.approx(-10 * math.log10(0.2**2), abs=1e-3)  # rgb 0.4 vs 0.6
+    assert m["clean_psnr_objects"] == m["clean_psnr"]
     assert m["depth_abs_rel"] == pytest.approx(0.5, abs=1e-6)
     assert m["depth_abs_rel_far"] == pytest.approx(0.5, abs=1e-6)
     assert m["depth_abs_rel_median"] == pytest.approx(0.5, abs=1e-6)
@@ -128,6 +129,23 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
     m = scoring.view_metrics(outputs, batch)
     assert m["clean_psnr"] >= 190 and m["mean_backscatter"] == pytest.approx(0.02)
     assert m["object_accumulation"] == pytest.approx(1.0) and m["open_water_accumulation"] == pytest.approx(0.25)
+
+
+def test_clean_psnr_on_object_pixels_and_their_nearest_third():
+    """Rows 0-2 open water, rows 3-8 objects at a range equal to the row: the nearest third of the
+    24 object pixels is rows 3-4, off by 0.1; the far rows are off by 0.2; open water by 0.5."""
+    h, w = 9, 4
+    depth = torch.arange(h, dtype=torch.float32)[:, None, None].expand(h, w, 1).clone()
+    depth[:3] = float("inf")
+    gt_clean = torch.full((h, w, 3), 0.5)
+    error = torch.full((h, w, 1), 0.2)
+    error[:3], error[3:5] = 0.5, 0.1
+    batch = {"image": gt_clean, "gt_clean": gt_clean, "gt_depth": depth}
+    m = scoring.view_metrics({"rgb": gt_clean, "clean": gt_clean + error, "depth": depth.clamp_max(9)}, batch)
+    assert m["clean_psnr_near_third"] == pytest.approx(20.0, abs=1e-4)
+    assert m["clean_psnr_objects"] == pytest.approx(-10 * math.log10((8 * 0.1**2 + 16 * 0.2**2) / 24), abs=1e-4)
+    scaled = scoring.view_metrics({"rgb": gt_clean, "clean": gt_clean + error, "depth": depth}, {**batch, "gt_depth": depth * 7})
+    assert scaled["clean_psnr_near_third"] == m["clean_psnr_near_third"]  # by rank: any range unit
 
 
 def test_model_and_bench_score_a_view_with_the_same_code():
@@ -181,12 +199,14 @@ def test_method_spec_overrides_become_ns_train_flags():
     )  # fmt: skip
 
 
-def test_method_spec_overrides_are_parsed_as_ns_train_parses_them():
+def test_method_spec_overrides_are_parsed_as_ns_train_parses_them(tmp_path):
     import tyro
     from nerfstudio.configs.method_configs import AnnotatedBaseConfigUnion
 
+    oracle = tmp_path / "medium.json"
+    oracle.write_text("{}")  # the option checks that the file exists; the model reads it
     spec = (
-        "seathru-nerf-lite:quadrature=paper,object_view_dependent=false,medium_oracle=/data/medium.json,"
+        f"seathru-nerf-lite:quadrature=paper,object_view_dependent=false,pipeline.model.research.medium_oracle={oracle},"
         "num_proposal_samples_per_ray=16|8,optimizers.medium.optimizer.lr=0.123,"
         "pipeline.datamanager.train_num_rays_per_batch=256"
     )
@@ -195,7 +215,7 @@ def test_method_spec_overrides_are_parsed_as_ns_train_parses_them():
     assert ours == tyro.cli(AnnotatedBaseConfigUnion, args=["seathru-nerf-lite", *flags])  # ns-train's own parse
     model = ours.pipeline.model
     assert model.quadrature == "paper" and model.object_view_dependent is False
-    assert model.medium_oracle == Path("/data/medium.json") and model.num_proposal_samples_per_ray == (16, 8)
+    assert model.research.medium_oracle == oracle and model.num_proposal_samples_per_ray == (16, 8)
     assert ours.optimizers["medium"]["optimizer"].lr == 0.123
     assert ours.pipeline.datamanager.train_num_rays_per_batch == 256
     assert build_config("seathru-nerf-lite").optimizers["medium"]["optimizer"].lr != 0.123  # a fresh config each time
@@ -207,7 +227,7 @@ def test_method_spec_overrides_are_parsed_as_ns_train_parses_them():
     assert type(config.pipeline.datamanager.dataparser) is type(build_config("seathru-nerf-lite").pipeline.datamanager.dataparser)
     # lower-case none is the clear-air medium model; None is None
     assert build_config("seathru-nerf-lite:medium_model=none").pipeline.model.medium_model == "none"
-    assert build_config("seathru-nerf-lite:medium_oracle=None").pipeline.model.medium_oracle is None
+    assert build_config("seathru-nerf-lite:pipeline.model.research.medium_oracle=None").pipeline.model.research.medium_oracle is None
 
 
 @pytest.mark.parametrize(
@@ -303,6 +323,7 @@ def test_report_writes_table_and_plot(tmp_path):
     assert "27.00" in table  # final in-medium PSNR of seathru (25 + 20/10)
     assert "3% (10, 0, 0)" in table  # beta_D error: mean and per channel
     assert "| water | `nerfacto` |" in table and "n/a" in table
+    assert "20.00" in table  # an older record's clean_psnr (object pixels) in the J PSNR objects column
     png = written["plot:water"].read_bytes()
     assert png.startswith(PNG_MAGIC) and len(png) > 10_000
 
@@ -332,7 +353,7 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
         assert run["train_time"] > 0 and run["sec_per_iter"] > 0 and run["peak_rss_mb"] > 100
         assert run["dataparser_scale"] > 0
         final = run["evals"][-1]["metrics"]
-        for key in ("psnr", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel", "depth_abs_rel_far"):
+        for key in ("psnr", "ssim", "clean_psnr", "clean_psnr_objects", "clean_psnr_near_third", "clean_ssim", "depth_abs_rel", "depth_abs_rel_far"):
             assert math.isfinite(final[key]), key
         assert len(run["evals"][-1]["per_view"]) == 2  # views 0 and 5 of 6 are held out
     for label in ("seathru-nerf-lite", "nerfacto"):  # --save-model: what ns-eval and ns-render load
@@ -340,6 +361,9 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
         saved = sorted(p.name for p in config_file.parent.glob("nerfstudio_models/*.ckpt"))
         assert saved == ["step-000000001.ckpt", "step-000000003.ckpt"]  # one per evaluation
     seathru, nerfacto = results["runs"]
+    top = results["ceilings"]["water"]["variants"]["ceiling"]["metrics"]  # the scene's ceiling, beside the runs
+    assert math.isfinite(top["clean_psnr_objects"]) and math.isfinite(top["clean_psnr_near_third"])
+    assert "medium_error_reference" in seathru["evals"][-1] and "medium_error_reference" not in nerfacto["evals"][-1]
     err = seathru["evals"][-1]["medium_error"]
     assert set(err) == {"beta_D", "beta_B", "B_inf"}
     assert err["beta_D"]["true"] == [1.3, 1.2, 0.9] and all(math.isfinite(x) for x in err["beta_D"]["rel"])
@@ -349,6 +373,7 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
 
     table = (out / "results.md").read_text()
     assert "| water | `seathru-nerf-lite` | 3 |" in table and "| water | `nerfacto` | 3 |" in table
+    assert "| water | **ceiling: true z, true β_D, fitted β_B, B∞** |" in table
     png = (out / "bench_water.png").read_bytes()
     assert png.startswith(PNG_MAGIC) and len(png) > 10_000
 

@@ -110,13 +110,12 @@ def test_bad_far_depth_is_refused() -> None:
 def test_the_model_contracts_beyond_the_extent_it_is_given() -> None:
     from tiny_training import tiny_model
 
-    model = tiny_model(metadata={EXTENT_KEY: 12.0}, contraction_at_scene=True)
+    model = tiny_model(metadata={EXTENT_KEY: 12.0})
     assert model.contraction_radius == 12.0
     distortions = [model.field.spatial_distortion] + [net.spatial_distortion for net in model.proposal_networks]
     assert all(isinstance(d, ContractionBeyond) and d.radius == 12.0 for d in distortions)
-    assert tiny_model(metadata={EXTENT_KEY: 12.0}).contraction_radius == 12.0  # the default
-    # a scene inside the unit cube keeps nerfacto's contraction; off, or no extent: nerfacto's
-    assert tiny_model(metadata={EXTENT_KEY: 0.5}, contraction_at_scene=True).contraction_radius == 1.0
-    for model in (tiny_model(metadata={EXTENT_KEY: 12.0}, contraction_at_scene=False), tiny_model(contraction_at_scene=True)):
+    # a scene inside the unit cube keeps radius 1; without an extent: nerfacto's own contraction
+    assert tiny_model(metadata={EXTENT_KEY: 0.5}).contraction_radius == 1.0
+    for model in (tiny_model(),):
         assert model.contraction_radius == 1.0
         assert not isinstance(model.field.spatial_distortion, ContractionBeyond)

@@ -27,7 +27,7 @@ FIT_STEP = 150
 """The medium fit (``medium_fit_step``), moved from 500 to half-way, once the veiling light has
 settled: fitted at step 60 (blue B∞ still 15% low) the clean image ended at 14.8 dB, at 150 at
 16.2 dB, with the defaults' excess term and without the fit 11.3 (2026-11-26, f139320). The prior's strong
-early weight lasts to the fit (``binary_prior_early_steps`` None)."""
+early weight lasts to the fit."""
 
 
 @pytest.fixture(scope="module")

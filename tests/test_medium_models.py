@@ -17,6 +17,7 @@ from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
 from seathru_nerfstudio.medium_choice import ChoiceRule, MediumEvidence, choose_medium_model
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumOutputs, tie
 from seathru_nerfstudio.model import UNDECIDED
+from seathru_nerfstudio.phases import TrainingPhases
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.rendering import render_seathru
 
@@ -84,35 +85,28 @@ def losses_of(model, seed: int = 0) -> dict:
     return model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch)), out, target
 
 
-@pytest.mark.parametrize("objective", ["nerfacto", "seathru"])
-def test_clear_air_trains_with_the_objective_it_is_given(objective):
-    """``none`` on linear data: nerfacto's L2 and no prior, or on request the media models' losses;
-    a medium model keeps the relative loss and the prior whatever the setting."""
-    none = tiny_model(medium_model="none", clear_air_objective=objective)
+def test_clear_air_trains_with_nerfactos_objective():
+    """``none`` on linear data: nerfacto's L2 and no prior (clear air has no medium for the relative
+    loss and the prior to tell apart); a medium model keeps the relative loss and the prior."""
+    none = tiny_model(medium_model="none")
     losses, out, target = losses_of(none)
-    relative = rawnerf_loss(out["rgb"], target)
-    if objective == "nerfacto":
-        torch.testing.assert_close(losses["rgb_loss"], torch.mean((out["rgb"] - target) ** 2))
-        assert "binary_prior_loss" not in losses
-    else:
-        torch.testing.assert_close(losses["rgb_loss"], relative)
-        assert "binary_prior_loss" in losses
-    seathru = tiny_model(medium_model="seathru", clear_air_objective=objective)
+    torch.testing.assert_close(losses["rgb_loss"], torch.mean((out["rgb"] - target) ** 2))
+    assert "binary_prior_loss" not in losses
+    seathru = tiny_model(medium_model="seathru")
     losses, out, target = losses_of(seathru)
     torch.testing.assert_close(losses["rgb_loss"], rawnerf_loss(out["rgb"], target))
     assert "binary_prior_loss" in losses
 
 
-def test_auto_takes_the_clear_air_objective_once_the_blend_to_none_is_over():
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100, medium_auto_none_restart="off")
+def test_auto_takes_the_clear_air_objective_at_once_when_it_chooses_none():
+    model = tiny_model(medium_model="auto", medium_first_steps=10, auto_decision_step=40)
     feed_evidence(model, evidence(share=0.0), range(20, 40))
-    model._decide_medium_model(39)
-    for step, has_prior in ((90, True), (140, False)):
+    model.auto_choice.after_step(39)
+    for step in (40, 140):
         model.train_step = step
         losses, out, target = losses_of(model, seed=step)
-        assert ("binary_prior_loss" in losses) == has_prior, step
-        expected = rawnerf_loss(out["rgb"], target) if has_prior else torch.mean((out["rgb"] - target) ** 2)
-        torch.testing.assert_close(losses["rgb_loss"], expected, msg=str(step))
+        assert "binary_prior_loss" not in losses, step
+        torch.testing.assert_close(losses["rgb_loss"], torch.mean((out["rgb"] - target) ** 2), msg=str(step))
 
 
 def test_tie_averages_the_densities_as_each_model_asks():
@@ -240,16 +234,15 @@ def feed_evidence(model, values: MediumEvidence, steps: range) -> None:
         for name in ("beta_D", "beta_B", "B_inf"):
             for channel, value in zip("rgb", getattr(values, name)):
                 row[f"medium_{name}_{channel}"] = torch.tensor(value)
-        model._record_evidence(row)
+        model.auto_choice.record(row, step)
 
 
 def test_auto_decides_once_at_its_step_from_the_mean_evidence_and_checkpoints_record_it():
     model = tiny_model(
         medium_model="auto",
         medium_first_steps=10,
-        medium_auto_decision_step=40,
-        medium_auto_evidence_steps=20,
-        medium_auto_none_restart="off",
+        auto_decision_step=40,
+        auto_evidence_steps=20,
     )
     assert model.medium_model == "seathru" and int(model.medium_model_code) == UNDECIDED
     field_before = {k: v.clone() for k, v in model.field.state_dict().items()}
@@ -257,31 +250,27 @@ def test_auto_decides_once_at_its_step_from_the_mean_evidence_and_checkpoints_re
     feed_evidence(model, evidence(), range(0, 20))
     feed_evidence(model, evidence(share=0.0), range(20, 30))
     feed_evidence(model, evidence(share=0.03), range(30, 40))  # mean 0.015: none
-    model._decide_medium_model(38)
+    model.auto_choice.after_step(38)
     assert int(model.medium_model_code) == UNDECIDED
-    model._decide_medium_model(39)
+    model.auto_choice.after_step(39)
     assert model.medium_model == "none"
     for key, value in model.field.state_dict().items():
-        torch.testing.assert_close(value, field_before[key])  # switching keeps the object field
+        torch.testing.assert_close(value, field_before[key])  # none restarts it from its initial state
     feed_evidence(model, evidence(), range(40, 60))
-    model._decide_medium_model(59)
+    model.auto_choice.after_step(59)
     assert model.medium_model == "none"  # decided once
 
     state = model.state_dict()
     assert int(state["medium_model_code"]) == MEDIUM_MODELS.index("none")
-    fresh = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    fresh = tiny_model(medium_model="auto", medium_first_steps=10, auto_decision_step=40)
     fresh.load_state_dict(state)
     assert fresh.medium_model == "none"
-    old = {key: value for key, value in state.items() if key != "medium_model_code"}
-    legacy = tiny_model(medium_model="fog")
-    legacy.load_state_dict(old)  # a checkpoint from before the model was recorded
-    assert legacy.medium_model == "fog"
 
 
 def test_auto_keeping_seathru_changes_nothing():
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    model = tiny_model(medium_model="auto", medium_first_steps=10, auto_decision_step=40)
     feed_evidence(model, evidence(), range(20, 40))
-    model._decide_medium_model(39)
+    model.auto_choice.after_step(39)
     model.train_step = 41
     assert model.medium_model == "seathru" and model.medium_blend == 1.0
 
@@ -291,21 +280,17 @@ def test_auto_weighs_the_tie_over_the_dataparser_far_bound_in_world_units(far_sc
     """Scale 0.25 scene units per metre: a far bound of 2 scene units is 8 m, where the turbid
     truth's gap (0.14 /m) is 1.12 in optical depth; at 0.5 m it is 0.07, a tie."""
     metadata = {SCALE_KEY: 0.25, "near_plane": 0.05, "far_plane": far_scene_units}
-    model = tiny_model(metadata, medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40)
+    model = tiny_model(metadata, medium_model="auto", medium_first_steps=10, auto_decision_step=40)
     assert model.far_range == pytest.approx(far_scene_units / 0.25)
     turbid = evidence(beta_D=(0.62, 0.38, 0.46), beta_B=(0.48, 0.32, 0.38), B_inf=(0.04, 0.26, 0.18))
     feed_evidence(model, turbid, range(20, 40))
-    model._decide_medium_model(39)
+    model.auto_choice.after_step(39)
     assert model.medium_model == expected
 
 
 def test_auto_settings_are_checked():
-    with pytest.raises(ValueError, match="medium_auto_decision_step"):
-        tiny_model(medium_model="auto", medium_first_steps=200, medium_auto_decision_step=100)
-    model = tiny_model(medium_model="seathru")
-    model.config.medium_model = "final"  # configs saved before the model had its name
-    model.config.check()
-    assert model.config.medium_model == "seathru"
+    with pytest.raises(ValueError, match="auto-decision-step"):
+        tiny_model(medium_model="auto", medium_first_steps=200, auto_decision_step=100)
 
 
 def _object_values(model) -> dict:
@@ -334,26 +319,17 @@ def _optimizers_with_state(model) -> Optimizers:
     return optimizers
 
 
-@pytest.mark.parametrize("restart", ["first-stage", "initial"])
 @pytest.mark.parametrize("share, chosen", [(0.0, "none"), (0.5, "seathru")])
-def test_auto_choosing_none_restarts_the_object_field_and_its_optimiser(share, chosen, restart):
-    model = tiny_model(
-        medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_none_restart=restart
-    )
+def test_auto_choosing_none_restarts_the_object_field_and_its_optimiser(share, chosen):
+    model = tiny_model(medium_model="auto", medium_first_steps=10, auto_decision_step=40)
     initial = _object_values(model)
-    _perturb_object(model)  # the first stage's geometry
-    model._decide_medium_model(9)  # the first stage's last step
-    at_first_stage_end = _object_values(model)
     _perturb_object(model)  # the warm-up
     optimizers = _optimizers_with_state(model)
     after_warm_up = _object_values(model)
     feed_evidence(model, evidence(share=share), range(20, 40))
-    model._decide_medium_model(39, optimizers)
+    model.auto_choice.after_step(39, optimizers)
     assert model.medium_model == chosen
-    if chosen == "none":
-        expected = at_first_stage_end if restart == "first-stage" else initial
-    else:
-        expected = after_warm_up
+    expected = initial if chosen == "none" else after_warm_up
     for name, value in _object_values(model).items():
         torch.testing.assert_close(value, expected[name], rtol=0, atol=0, msg=name)
     for group, optimizer in optimizers.optimizers.items():
@@ -362,74 +338,50 @@ def test_auto_choosing_none_restarts_the_object_field_and_its_optimiser(share, c
     model.train_step = 40
     # no blend after a restart: clear air at once
     assert model.medium_blend == 1.0 and model.clear_air == (chosen == "none")
-    assert model.first_stage_object is None  # the copy is dropped once decided
-
-
-def test_auto_without_the_first_stage_copy_blends_to_none():
-    """A run resumed between the first stage and the decision has no copy: the blend instead."""
-    model = tiny_model(
-        medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_none_restart="first-stage"
-    )
-    _perturb_object(model)
-    after_warm_up = _object_values(model)
-    feed_evidence(model, evidence(share=0.0), range(20, 40))
-    model._decide_medium_model(39)
-    assert model.medium_model == "none" and int(model.medium_model_step) == 40
-    for name, value in _object_values(model).items():
-        torch.testing.assert_close(value, after_warm_up[name], rtol=0, atol=0, msg=name)
+    assert model.auto_choice.initial_object is None  # the copy is dropped once decided
 
 
 def test_after_the_decision_the_medium_blends_to_the_choice_and_the_geometry_holds():
-    model = tiny_model(medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_auto_blend_steps=100, medium_auto_none_restart="off")
-    feed_evidence(model, evidence(share=0.0), range(20, 40))
-    model._decide_medium_model(39)
-    assert model.medium_model == "none" and int(model.medium_model_step) == 40
+    model = tiny_model(medium_model="auto", medium_first_steps=10, auto_decision_step=40, auto_blend_steps=100)
+    feed_evidence(model, evidence(share=0.3, beta_D=(1.2,) * 3, beta_B=(1.2,) * 3, B_inf=(0.6,) * 3), range(20, 40))
+    model.auto_choice.after_step(39)
+    assert model.medium_model == "fog" and int(model.medium_model_step) == 40
     model.train()
     bundle = rays(24, seed=5)
     learned = model.medium_field(bundle.directions)
+    fog = tie(learned, "fog")
     for step, weight in ((40, 0.0), (90, 0.5), (139, 0.99)):
         model.train_step = step
         assert model.medium_blend == pytest.approx(weight)
         out = model(bundle)
-        torch.testing.assert_close(out["medium_attenuation"], (1 - weight) * learned.sigma_attn.detach(), msg=str(step))
-        torch.testing.assert_close(out["medium_rgb"], (1 - weight) * learned.rgb.detach(), msg=str(step))
+        expected = (1 - weight) * learned.sigma_attn + weight * fog.sigma_attn
+        torch.testing.assert_close(out["medium_attenuation"], expected.detach(), msg=str(step))
         # the object density gets no gradient while the medium moves; the colour does
         assert not out["accumulation"].requires_grad and not out["expected_depth"].requires_grad
         assert out["clean"].requires_grad
     model.train_step = 140
-    calls = count_medium_calls(model)
     out = model(bundle)
-    assert calls == [] and model.clear_air and bool((out["backscatter"] == 0).all())
+    torch.testing.assert_close(out["medium_attenuation"], fog.sigma_attn.detach())
+    assert out["accumulation"].requires_grad  # the geometry learns again
 
 
-def test_the_prior_takes_its_early_weight_before_the_early_steps_and_its_full_weight_after():
-    """``binary_prior_early_mult`` weighs the prior until ``binary_prior_early_steps``, then
-    ``binary_prior_mult``; a loaded model (no training step) uses ``binary_prior_mult``."""
-    model = tiny_model(
-        medium_model="seathru", medium_first_steps=0, binary_prior_mult=1e-4, binary_prior_early_mult=1e-3, binary_prior_early_steps=50
-    )
+def test_the_prior_takes_its_early_weight_up_to_the_medium_fit_and_its_full_weight_after():
+    """``research.binary_prior_early_mult`` weighs the prior until ``medium_fit_step`` (throughout
+    when there is no fit), then ``binary_prior_mult``; a loaded model (no step) uses the latter."""
+    model = tiny_model(medium_model="seathru", medium_first_steps=0, medium_fit_step=50, binary_prior_mult=1e-4, binary_prior_early_mult=1e-3)
     for step, weight in ((0, 1e-3), (49, 1e-3), (50, 1e-4), (None, 1e-4)):
         model.train_step = step
         losses, out, _ = losses_of(model, seed=3)
         expected = weight * binary_transmittance_loss(out["transmittance"], scale=0.1, empty_weight=6.0)
         torch.testing.assert_close(losses["binary_prior_loss"], expected, msg=str(step))
+    no_fit = tiny_model(medium_model="seathru", medium_first_steps=0, medium_fit_step=None, binary_prior_early_mult=1e-3)
+    assert all(TrainingPhases(no_fit.config, step).binary_prior_weight == 1e-3 for step in (0, 10**6))
     unscheduled = tiny_model(medium_model="seathru", medium_first_steps=0, binary_prior_mult=2e-3, binary_prior_early_mult=None)
     unscheduled.train_step = 0
     losses, out, _ = losses_of(unscheduled, seed=3)
     torch.testing.assert_close(
         losses["binary_prior_loss"], 2e-3 * binary_transmittance_loss(out["transmittance"], scale=0.1, empty_weight=6.0)
     )
-
-
-def test_the_prior_switches_at_the_medium_fit_unless_told_otherwise():
-    """``binary_prior_early_steps`` None: the early weight lasts up to ``medium_fit_step``, and
-    throughout when there is no fit; a number overrides the fit step."""
-    for overrides, switch in (({"medium_fit_step": 30}, 30), ({"medium_fit_step": None}, None), ({"medium_fit_step": 30, "binary_prior_early_steps": 10}, 10)):
-        model = tiny_model(medium_model="seathru", medium_first_steps=0, binary_prior_mult=1e-4, binary_prior_early_mult=1e-3, **overrides)
-        for step in (0, 9, 10, 29, 30, 1000):
-            model.train_step = step
-            early = switch is None or step < switch
-            assert model.binary_prior_weight == (1e-3 if early else 1e-4), (overrides, step)
 
 
 def test_auto_decides_before_the_medium_fit_of_the_same_step_so_the_fit_ties_as_chosen():
@@ -446,7 +398,7 @@ def test_auto_decides_before_the_medium_fit_of_the_same_step_so_the_fit_ties_as_
     table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
     model = tiny_model(
         metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
-        medium_model="auto", medium_first_steps=10, medium_auto_decision_step=40, medium_fit_step=40,
+        medium_model="auto", medium_first_steps=10, auto_decision_step=40, medium_fit_step=40,
     )  # fmt: skip
     veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
     colour = rng.uniform(0.1, 1.0, (200, 1, 3))

@@ -17,6 +17,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
+from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.model import SeathruModel, SeathruModelConfig
 
 from tiny_training import spy_calls, tiny_model
@@ -283,24 +284,8 @@ def test_renders_start_at_the_near_bound_that_training_used(render_from_near_bou
     assert torch.allclose(without_bounds.collider(rays(4, seed=1)).nears, torch.full((4, 1), expected))
 
 
-def test_medium_warmup_ramps_the_densities_and_ends_at_the_learned_medium():
-    model = tiny_model(medium_warmup_steps=100)
-    model.eval()
-    bundle = rays(8, seed=5)
-    assert model.medium_ramp == 1.0  # a loaded checkpoint renders the full medium
-    with torch.no_grad():
-        full = model(bundle)
-        model.train_step = 25
-        quarter = model(bundle)
-        model.train_step = 0
-        clear = model(bundle)
-        model.train_step = 400
-        after = model(bundle)
-    torch.testing.assert_close(quarter["medium_attenuation"], 0.25 * full["medium_attenuation"])
-    torch.testing.assert_close(quarter["medium_backscatter"], 0.25 * full["medium_backscatter"])
-    torch.testing.assert_close(clear["backscatter"], torch.zeros(8, 3))
-    torch.testing.assert_close(clear["rgb"], clear["clean"])
-    torch.testing.assert_close(after["rgb"], full["rgb"])
+def test_the_step_callback_sets_the_training_step():
+    model = tiny_model()
     callbacks = model.get_training_callbacks(None)
     callbacks[-1].run_callback_at_location(7, callbacks[-1].where_to_run[0])
     assert model.train_step == 7
@@ -321,24 +306,26 @@ def test_scene_medium_is_the_same_for_every_ray_and_learns():
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in groups["medium"] + groups["medium_density"])
 
 
-@pytest.mark.parametrize("flag", [False, True])
-def test_the_model_learns_the_veil_from_open_rays_when_configured(flag):
-    """``veil_from_open_rays`` reaches the renderer: each ray's gradient on the veiling light is the
-    plain one times the share of the ray that passes all matter, 1 - accumulation."""
+def test_the_model_learns_the_veil_from_open_rays(monkeypatch):
+    """The model asks the renderer for ``veil_from_open_rays``: each ray's gradient on the veiling
+    light is the plain one (the renderer without the flag) times 1 - accumulation."""
+    import seathru_nerfstudio.model as model_module
+
     grads = []
-    for veil_from_open_rays in (False, flag):
+    for plain in (True, False):
+        if plain:
+            render = model_module.render_seathru
+            monkeypatch.setattr(model_module, "render_seathru", lambda **kw: render(**{**kw, "veil_from_open_rays": False}))
         torch.manual_seed(0)
-        model = tiny_model(
-            medium_scope="scene", medium_first_steps=0, average_init_density=3.0, veil_from_open_rays=veil_from_open_rays
-        )
+        model = tiny_model(medium_scope="scene", medium_first_steps=0, average_init_density=3.0)
         model.train()
         out = model(rays(32, seed=5))
         (grad,) = torch.autograd.grad(out["rgb"].sum(), out["medium_rgb"])
         grads.append(grad)
         open_share = 1.0 - out["accumulation"].detach()
+        monkeypatch.undo()
     assert ((open_share > 0.05) & (open_share < 0.95)).any()  # rays that are partly open
-    expected = grads[0] * open_share if flag else grads[0]
-    torch.testing.assert_close(grads[1], expected, rtol=1e-4, atol=1e-7)
+    torch.testing.assert_close(grads[1], grads[0] * open_share, rtol=1e-4, atol=1e-7)
 
 
 def test_oracle_medium_is_the_truth_per_scene_unit_and_has_no_parameters(tmp_path):
@@ -346,7 +333,7 @@ def test_oracle_medium_is_the_truth_per_scene_unit_and_has_no_parameters(tmp_pat
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
     box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
     config = tiny_model().config
-    config.medium_oracle = tmp_path / "medium.json"
+    config.research.medium_oracle = tmp_path / "medium.json"
     model = config.setup(scene_box=box, num_train_data=4, metadata={"dataparser_scale": 2.5})
     model.eval()
     with torch.no_grad():
@@ -422,34 +409,38 @@ def test_depth_loss_pulls_the_weights_to_the_known_depth_and_empties_open_water(
     out = m(rays(4))
     batch = {"image": torch.rand(4, 3)}
     assert "depth_loss" not in m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
-    with pytest.raises(KeyError, match="ground_truth/depth"):
+    with pytest.raises(KeyError, match="depth_source ground-truth"):
         m = tiny_model(depth_loss_mult=1.0, depth_source="ground-truth")
         m.train()
         out = m(rays(4))
         m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
 
 
-def test_depth_kernel_follows_the_samples_unless_switched_off():
-    """Per ray, the kernel is the floor or the length of the sample interval at the known depth."""
+def test_the_depth_loss_kernel_follows_the_samples():
+    """The model's depth loss is nerfstudio's DS-NeRF loss with, per ray, the variance of
+    :func:`depth_kernel_variance` (the floor, or the sample interval at the known range), averaged
+    over the rays whose depth is known."""
+    from nerfstudio.model_components.losses import DepthLossType, depth_loss
+
     from seathru_nerfstudio.losses import depth_kernel_variance
 
     bundle = rays(8, seed=5)
-    bundle.metadata["directions_norm"] = torch.full((8, 1), 1.25)
+    norm = torch.full((8, 1), 1.25)
+    bundle.metadata["directions_norm"] = norm
     z_depth = torch.full((8, 1), 0.6)
-    for follows in (True, False):
-        m = tiny_model(depth_loss_mult=1.0, depth_sigma=0.05, depth_sigma_follows_sampling=follows)
-        m.train()
-        out = m(bundle)
-        variance = m._depth_kernel_variance(out, z_depth, bundle.metadata["directions_norm"], is_euclidean=False)
-        floor = (0.05 * m.world_scale) ** 2
-        if not follows:
-            torch.testing.assert_close(variance, torch.tensor(floor))
-            continue
-        frustums = out["ray_samples_list"][-1].frustums
-        ranges = 0.6 * torch.full((8, 1), 1.25)  # z-depth times the direction's norm
-        expected = depth_kernel_variance(frustums.starts, frustums.ends, ranges, 0.05 * m.world_scale)
-        torch.testing.assert_close(variance, expected)
-        assert variance.shape == (8, 1, 1) and (variance >= floor).all()
+    z_depth[6:] = 0.0  # unknown
+    m = tiny_model(depth_loss_mult=1.0, depth_sigma=0.05)
+    m.train()
+    out = m(bundle)
+    frustums = out["ray_samples_list"][-1].frustums
+    variance = depth_kernel_variance(frustums.starts, frustums.ends, z_depth * norm, 0.05 * m.world_scale)
+    assert variance.shape == (8, 1, 1) and (variance >= (0.05 * m.world_scale) ** 2).all()
+    expected = depth_loss(
+        weights=out["weights_list"][-1], ray_samples=out["ray_samples_list"][-1], termination_depth=z_depth,
+        predicted_depth=out["expected_depth"], sigma=variance, directions_norm=norm, is_euclidean=False,
+        depth_loss_type=DepthLossType.DS_NERF,
+    ) * 8 / 6  # fmt: skip
+    torch.testing.assert_close(m._depth_loss(out, {"depth_image": z_depth}), expected)
 
 
 def test_the_medium_starts_at_an_optical_depth_of_the_sfm_range():
@@ -536,27 +527,13 @@ def test_medium_first_steps_freeze_the_object_field_only():
     assert not model.object_frozen  # never outside training
 
 
-def test_medium_first_steps_do_not_freeze_the_object_field_under_a_fixed_medium(tmp_path):
-    # With the true medium held fixed and no geometry stage nothing would learn in that stage
-    # (and the loss would have no gradient at all), so the object field trains from step 0.
-    truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
-    (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
-    model = tiny_model(medium_first_steps=5, medium_oracle=tmp_path / "medium.json", first_stage_geometry=False)
-    model.train()
-    model.train_step = 0
-    assert not model.object_frozen
-    out = model(rays(16, seed=7))
-    out["rgb"].sum().backward()
-    assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in model.field.parameters())
-
-
 def test_a_learning_oracle_starts_at_the_truth_and_its_medium_learns(tmp_path):
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
     box = SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]]))
     config = tiny_model().config
-    config.medium_oracle = tmp_path / "medium.json"
-    config.medium_oracle_learns = True
+    config.research.medium_oracle = tmp_path / "medium.json"
+    config.research.medium_oracle_learns = True
     model = config.setup(scene_box=box, num_train_data=4, metadata={"dataparser_scale": 2.5})
     model.eval()
     with torch.no_grad():
@@ -572,7 +549,7 @@ def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
     for medium in ({"medium_scope": "scene"}, {"medium_oracle": tmp_path / "medium.json"}):
-        model = tiny_model(medium_first_steps=5, first_stage_geometry=True, depth_loss_mult=1.0, **medium)
+        model = tiny_model(medium_first_steps=5, depth_loss_mult=1.0, **medium)
         model.train()
         model.train_step = 0
         assert model.object_frozen  # a fixed medium too: the geometry learns
@@ -608,7 +585,6 @@ def test_first_stage_without_depth_images_trains_no_geometry():
     """The geometry stage is the default; without SfM depths only the prior would act on the
     geometry, and it would only erase it: the density waits, as the colour does."""
     model = tiny_model(medium_first_steps=5)
-    assert model.config.first_stage_geometry
     model.train()
     model.train_step = 0
     assert model.object_frozen
@@ -624,11 +600,11 @@ def test_first_stage_without_depth_images_trains_no_geometry():
 
 
 def test_predict_normals_is_refused_with_a_clear_message():
-    with pytest.raises(ValueError, match="predict_normals=True is not supported"):
+    with pytest.raises(ValueError, match="predict-normals True is not supported"):
         SeathruModelConfig(predict_normals=True)
     config = tiny_model().config
     config.predict_normals = True  # changed after construction (as overrides do): refused when built
-    with pytest.raises(ValueError, match="predict-normals False"):
+    with pytest.raises(ValueError, match="--normal-method open3d"):
         config.setup(scene_box=SceneBox(aabb=torch.tensor([[-1.0, -1, -1], [1, 1, 1]])), num_train_data=4)
 
 
@@ -709,7 +685,7 @@ def test_water_controls_change_the_medium_outside_training_unless_switched_off()
 
 
 def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
-    m = tiny_model(medium_first_steps=5, medium_scope="scene", medium_envelope_quantile=0.01)
+    m = tiny_model(medium_first_steps=5, medium_scope="scene", envelope_quantile=0.01)
     m.train()
     depth = torch.full((32, 1), 0.6)
     depth[16:] = 0.0  # unknown
@@ -749,7 +725,7 @@ def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
 
 def test_the_envelope_can_fit_the_backscatter_density_alone():
     m = tiny_model(
-        medium_first_steps=5, medium_scope="scene", medium_envelope_quantile=0.01, medium_envelope_densities="backscatter"
+        medium_first_steps=5, medium_scope="scene", envelope_quantile=0.01, envelope_densities="backscatter"
     )
     m.train()
     m.train_step = 0
@@ -765,28 +741,12 @@ def test_the_envelope_can_fit_the_backscatter_density_alone():
     torch.testing.assert_close(losses["backscatter_envelope_loss"].detach(), expected)
 
 
-def test_densities_are_held_for_the_hold_steps_after_the_object_starts():
-    model = tiny_model(medium_first_steps=5, medium_density_hold_steps=10)
-    model.train()
-    bundle = rays(16, seed=3)
-    for step, held in ((4, True), (5, True), (14, True), (15, False)):
-        model.train_step = step
-        model.zero_grad()
-        out = model(bundle)
-        (out["rgb"].sum() + out["medium_attenuation"].sum()).backward()
-        grad = model.medium_field.density_raw.grad
-        assert (grad is None or bool((grad == 0).all())) == held, step
-        if step >= 5:  # the object colour learns meanwhile
-            head = [p for n, p in model.field.named_parameters() if "mlp_head" in n]
-            assert any(p.grad is not None and p.grad.abs().sum() > 0 for p in head), step
-
-
 def test_fitted_densities_that_are_held_get_no_gradient_and_the_others_learn():
-    """``medium_fit_holds``: after the fit, the channels it replaced get no gradient in training;
+    """After the fit, the channels it replaced get no gradient in training;
     a channel it kept (here green) trains on, as before the fit; also through a tied medium (``fog``
     averages the six densities), where the hold acts on the parameters, not on the tied outputs."""
     for medium_model in ("seathru", "fog"):
-        model = tiny_model(medium_first_steps=0, medium_fit_holds=True, medium_model=medium_model)
+        model = tiny_model(medium_first_steps=0, medium_model=medium_model)
         model.train()
         model.train_step = 20
         model.densities_fitted.copy_(torch.tensor([True, False, True, True, False, True]))
@@ -818,49 +778,46 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
     colour = rng.uniform(0.1, 1.0, (200, 1, 3))
     table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))  # colours set below, under the model's veil
-    m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10)
+    m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5)
     veil = torch.sigmoid(m.medium_field.rgb_logit.detach().double()).numpy()
     table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
     before = m.medium_field.density_raw.detach().clone()
-    m._fit_medium(step=5)
+    apply_medium_fit(m, 5)
     torch.testing.assert_close(m.medium_field.density_raw.detach(), before)
-    m._fit_medium(step=9)
+    apply_medium_fit(m, 9)
     sigma = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
     torch.testing.assert_close(sigma * 2.0, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
     # a fit whose errors exceed the bound keeps the trained densities, channel by channel
-    strict = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_max_log_error=1e-12)
+    strict = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_fit_max_log_error=1e-300)  # below any error
     kept = strict.medium_field.density_raw.detach().clone()
-    strict._fit_medium(step=9)
+    apply_medium_fit(strict, 9)
     torch.testing.assert_close(strict.medium_field.density_raw.detach(), kept)
     assert not strict.densities_fitted.any()  # what the fit kept trains on
-    with pytest.raises(ValueError, match="medium_fit_max_log_error"):
+    with pytest.raises(ValueError, match="medium-fit-max-log-error"):
         tiny_model(medium_fit_max_log_error=float("nan"))
-    # the fitted channels are held (the default), or train on; the hold survives a checkpoint
-    assert m.densities_fitted.all()
-    free = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_fit_holds=False)
-    free._fit_medium(step=9)
-    assert not free.densities_fitted.any()
+    # the fitted channels are held; the hold and the fit's errors survive a checkpoint
+    assert m.densities_fitted.all() and (m.fit_log_error >= 0).all()
     held = m
-    reloaded = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10)
+    reloaded = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5)
     reloaded.load_state_dict(held.state_dict())
-    assert reloaded.densities_fitted.all()
+    assert reloaded.densities_fitted.all() and torch.equal(reloaded.fit_log_error, held.fit_log_error)
     # the fit ties the densities as the medium model in use renders them; clear air has none to fit
-    fog = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_model="fog")
+    fog = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_model="fog")
     capsys.readouterr()
-    fog._fit_medium(step=9)
+    apply_medium_fit(fog, 9)
     assert "(fog tie)" in capsys.readouterr().out  # the log names the tie it fitted
     fog_sigma = torch.nn.functional.softplus(fog.medium_field.density_raw.detach().double())
     torch.testing.assert_close(fog_sigma, fog_sigma[:1].expand(6), rtol=1e-6, atol=0)
     assert not torch.allclose(fog_sigma, torch.nn.functional.softplus(before.double()))
-    clear = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_model="none")
+    clear = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_model="none")
     clear_before = clear.medium_field.density_raw.detach().clone()
-    clear._fit_medium(step=9)
+    apply_medium_fit(clear, 9)
     assert torch.equal(clear.medium_field.density_raw.detach(), clear_before)
     # a medium of the ray direction is not fitted (an MLP, not constants)
-    ray = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_scope="ray")
+    ray = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_scope="ray")
     assert not ray.fits_medium
     state = {k: v.clone() for k, v in ray.state_dict().items()}
-    ray._fit_medium(step=9)
+    apply_medium_fit(ray, 9)
     assert all(torch.equal(state[k], v) for k, v in ray.state_dict().items())
 
 
@@ -877,28 +834,40 @@ def test_the_fit_oracle_puts_the_chosen_true_densities_in_place_of_the_fit_and_h
     table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
     truth = {"beta_D": [0.5, 0.6, 0.7], "beta_B": [0.2, 0.3, 0.4], "B_inf": [0.1, 0.2, 0.3]}  # not what the table says
     (tmp_path / "medium.json").write_text(json.dumps(truth))
-    settings = {"medium_fit_step": 10, "medium_fit_oracle": tmp_path / "medium.json", "medium_fit_oracle_parts": parts}
+    settings = {"medium_fit_step": 10, "medium_first_steps": 5, "medium_fit_oracle": tmp_path / "medium.json", "medium_fit_oracle_parts": parts}
     m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, **settings)
     veil = torch.sigmoid(m.medium_field.rgb_logit.detach().double()).numpy()
     table.colours[...] = rng.uniform(0.1, 1.0, (200, 1, 3)) * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(
         -beta_b * ranges[..., None]
     )
-    m._fit_medium(step=9)
+    apply_medium_fit(m, 9)
     per_metre = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double()) * 2.0
     expected_d = truth["beta_D"] if parts != "backscatter" else beta_d
     expected_b = truth["beta_B"] if parts != "attenuation" else beta_b
     torch.testing.assert_close(per_metre, torch.tensor([*expected_d, *expected_b], dtype=torch.float64), rtol=0.01, atol=0)
     assert m.densities_fitted.all()
-    with pytest.raises(ValueError, match="medium_fit_oracle"):
+    with pytest.raises(ValueError, match="medium-fit-oracle"):
         tiny_model(medium_fit_step=None, medium_fit_oracle=tmp_path / "medium.json")
     # a file that is not a medium fails when the model is built, naming the file, not at the fit step
     (tmp_path / "bad.json").write_text(json.dumps({"beta_D": [1.0, 2.0]}))
     for bad in (tmp_path / "bad.json", tmp_path / "missing.json"):
         with pytest.raises(ValueError, match=bad.name):
-            tiny_model(medium_fit_step=10, medium_fit_oracle=bad)
+            tiny_model(medium_fit_step=10, medium_first_steps=5, medium_fit_oracle=bad)
 
 
-@pytest.mark.parametrize("settings", [{"binary_prior_early_steps": -1}, {"binary_prior_early_mult": float("nan")}, {"binary_prior_early_mult": -1e-3}])
-def test_the_prior_schedule_is_checked(settings):
-    with pytest.raises(ValueError, match="binary_prior_early"):
+@pytest.mark.parametrize(
+    "settings, option",
+    [
+        ({"binary_prior_early_mult": float("nan")}, "binary-prior-early-mult"),
+        ({"binary_prior_early_mult": -1e-3}, "binary-prior-early-mult"),
+        ({"backscatter_excess_steps": -1}, "backscatter-excess-steps"),
+        ({"medium_fit_step": -5}, "medium-fit-step"),
+        ({"medium_fit_step": 100, "medium_first_steps": 200}, "medium-fit-step"),
+        ({"medium_first_steps": -1}, "medium-first-steps"),
+        ({"binary_prior_mult": float("nan")}, "binary-prior-mult"),
+        ({"medium_oracle": "/nonexistent/medium.json"}, "medium-oracle: /nonexistent/medium.json does not exist"),
+    ],
+)
+def test_settings_that_cannot_train_are_refused_naming_the_option(settings, option):
+    with pytest.raises(ValueError, match=option):
         tiny_model(**settings)

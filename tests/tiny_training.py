@@ -82,11 +82,19 @@ def tiny_config(scene: Path, output_dir: Path, iterations: int, **trainer_fields
 
 def tiny_model(metadata=None, **overrides):
     """An untrained ``SeathruModel`` small enough to render a few hundred rays in milliseconds;
-    ``overrides`` are ``SeathruModelConfig`` fields, ``metadata`` the dataparser's."""
+    ``overrides`` are ``SeathruModelConfig`` or ``ResearchConfig`` fields (the latter go into
+    ``research``), ``metadata`` the dataparser's."""
+    import dataclasses
+
     import torch
     from nerfstudio.data.scene_box import SceneBox
 
-    from seathru_nerfstudio.model import SeathruModelConfig
+    from seathru_nerfstudio.model import ResearchConfig, SeathruModelConfig
+
+    research_fields = {f.name for f in dataclasses.fields(ResearchConfig)}
+    research = {key: overrides.pop(key) for key in list(overrides) if key in research_fields}
+    if research:
+        overrides["research"] = ResearchConfig(**research)
 
     config = SeathruModelConfig(
         implementation="torch",

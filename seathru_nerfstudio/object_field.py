@@ -1,0 +1,65 @@
+"""nerfacto's object field fitted to an underwater capture: Lambertian colour, the scene
+contraction at the scene, and rays bounded by the SfM near and far bounds.
+
+* **Lambertian colour** (:class:`FixedDirectionEncoding`), as the official SeaThru-NeRF: a
+  view-dependent look must come from the medium, and multi-view consistency pins the colour.
+* **Contraction at the scene** (:class:`~seathru_nerfstudio.contraction.ContractionBeyond`): a
+  forward-facing rig sees out of nerfstudio's unit cube, so its whole scene would lie in the
+  contracted shell; the contraction starts at the extent the cameras see up to the far bound.
+* **Bounds** (:func:`scene_collider`): rays start at 0.9 of the SfM near bound (no dark screen in
+  front of the lens) and end at ``far_bound_margin`` times the far bound (an unbounded field starts
+  as an opaque wall behind the open water); the renderer adds the water outside in closed form.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping, Optional
+
+import torch
+from torch import nn
+
+from nerfstudio.model_components.scene_colliders import NearFarCollider
+
+from seathru_nerfstudio.contraction import ContractionBeyond
+from seathru_nerfstudio.metadata_keys import EXTENT_KEY
+
+
+class FixedDirectionEncoding(nn.Module):
+    """An encoding that always encodes one fixed direction: a colour head fed by it is
+    view-independent (Lambertian), with nerfacto's field left as it is."""
+
+    def __init__(self, encoding: nn.Module) -> None:
+        super().__init__()
+        self.encoding = encoding
+
+    def get_out_dim(self) -> int:
+        return self.encoding.get_out_dim()
+
+    def forward(self, directions: torch.Tensor) -> torch.Tensor:
+        fixed = torch.zeros_like(directions[:1])
+        fixed[..., 2] = 1.0
+        return self.encoding(fixed).expand(directions.shape[0], -1)
+
+
+def contract_at_scene(field: nn.Module, proposal_networks: nn.ModuleList, metadata: Mapping[str, Any]) -> float:
+    """Give the object field and the proposal networks a contraction that starts at the scene's
+    extent (scene units; at least nerfacto's 1); returns the radius used."""
+    if EXTENT_KEY not in metadata:
+        return 1.0
+    radius = max(1.0, float(metadata[EXTENT_KEY]))
+    contraction = ContractionBeyond(radius)
+    field.spatial_distortion = contraction
+    for network in proposal_networks:
+        network.spatial_distortion = contraction
+    return radius
+
+
+def scene_collider(metadata: Mapping[str, Any], far_plane: float, far_bound_margin: float) -> Optional[NearFarCollider]:
+    """A collider on the scene's own bounds (``near_plane``, ``far_plane`` of the dataparser's
+    metadata, scene units), or ``None`` without them (nerfacto's collider stays)."""
+    if "near_plane" not in metadata:
+        return None
+    far = far_plane
+    if far_bound_margin > 0 and "far_plane" in metadata:
+        far = far_bound_margin * float(metadata["far_plane"])
+    return NearFarCollider(near_plane=0.9 * float(metadata["near_plane"]), far_plane=far)
