@@ -7,7 +7,10 @@ the evaluations during ``ns-train``) it switches them off with the model's plain
 time. Metrics read the linear outputs (``rgb``, ``clean``, ...), never the display ones.
 
 Also the class that saved configs (``config.yml``) name, and the base of the multi-process
-pipeline in :mod:`seathru_nerfstudio.distributed`.
+pipeline in :mod:`seathru_nerfstudio.distributed`. It is the first code of ours that nerfstudio's
+``ns-eval``, ``ns-render`` and ``ns-viewer`` run: bad input met while it is built (the dataparser's
+checks, the model's) ends them with one line and exit status 1
+(:func:`~seathru_nerfstudio.input_errors.exit_on_input_error`).
 """
 
 from __future__ import annotations
@@ -18,6 +21,7 @@ from typing import Any, Iterator, Literal, Optional, Type
 
 from nerfstudio.pipelines.base_pipeline import VanillaPipeline, VanillaPipelineConfig
 
+from seathru_nerfstudio.input_errors import exit_on_input_error
 from seathru_nerfstudio.model import SeathruModel
 
 
@@ -41,7 +45,8 @@ class SeathruPipeline(VanillaPipeline):
         local_rank: int = 0,
         grad_scaler: Optional[Any] = None,
     ):
-        super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
+        with exit_on_input_error():
+            super().__init__(config, device, test_mode, world_size, local_rank, grad_scaler)
         if not isinstance(self.model, SeathruModel):
             raise TypeError(
                 f"SeathruPipeline is for SeaThru models, not {type(self.model).__name__}: "

@@ -23,10 +23,17 @@ nerfstudio, without changing its training loop or its checkpoint format:
   the folder holds no checkpoint, and (``total_iterations_on_resume``, on by default) a resumed
   run stops at ``max_num_iterations`` in total, where the killed run would have stopped, instead
   of training ``max_num_iterations`` more.
+* **Bad input.** An :class:`~seathru_nerfstudio.input_errors.InputError` met while the trainer
+  sets up or trains (the dataparser's checks, the model's option checks, a data-loading worker
+  that met a bad file) ends ``ns-train`` with its one line and exit status 1, no traceback. A
+  checkpoint folder without checkpoints is refused when it is named, whoever names it: ``ns-train
+  --load-dir``, or ``ns-eval``/``ns-render``/``ns-viewer``, which point ``load_dir`` at the run's
+  ``nerfstudio_models/`` (nerfstudio itself would fail there with ``IndexError``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -40,6 +47,10 @@ from nerfstudio.engine.optimizers import Optimizers
 from nerfstudio.engine.trainer import TRAIN_INTERATION_OUTPUT, Trainer, TrainerConfig
 from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
+
+from seathru_nerfstudio import compat
+from seathru_nerfstudio.data.datamanager import DataWorkerKilled
+from seathru_nerfstudio.input_errors import InputError, exit_on_input_error
 
 CHECKPOINT_GLOB = "step-*.ckpt"
 
@@ -68,6 +79,28 @@ class SeathruTrainerConfig(TrainerConfig):
     total_iterations_on_resume: bool = True
     """When resuming (--load-dir/--load-checkpoint), stop at max_num_iterations in total, where the
     interrupted run would have stopped. False: nerfstudio's behaviour, max_num_iterations more."""
+
+    def __setattr__(self, name: str, value) -> None:
+        if name == "load_dir" and value is not None:
+            with exit_on_input_error():  # no code of ours is above ns-eval's eval_setup, which sets it
+                check_checkpoint_folder(Path(value), getattr(self, "load_step", None))
+        super().__setattr__(name, value)
+
+
+def check_checkpoint_folder(load_dir: Path, load_step: Optional[int] = None) -> None:
+    """Raise :class:`InputError` unless ``load_dir`` is a folder that holds a checkpoint (the one of
+    ``load_step``, if given)."""
+    if not load_dir.is_dir():
+        raise InputError(
+            f"checkpoint folder {load_dir} does not exist: point --load-dir (or --load-config) at a run whose "
+            "nerfstudio_models/ holds step-*.ckpt files"
+        )
+    wanted = f"step-{load_step:09d}.ckpt" if load_step is not None else CHECKPOINT_GLOB
+    if not list(load_dir.glob(wanted)):
+        raise InputError(
+            f"checkpoint folder {load_dir} holds no {wanted}: the run stopped before its first save (see "
+            "--steps-per-save), or its checkpoints were deleted. Train again, or use a run that saved one"
+        )
 
 
 def _nonfinite_tensors(named: Iterable) -> List[str]:
@@ -232,12 +265,24 @@ class SeathruTrainer(Trainer):
     config: SeathruTrainerConfig
 
     def __init__(self, config: SeathruTrainerConfig, local_rank: int = 0, world_size: int = 1) -> None:
-        super().__init__(config, local_rank, world_size)
+        with exit_on_input_error():
+            super().__init__(config, local_rank, world_size)
         guard_config = getattr(config, "guard", NonFiniteGuardConfig())
         self.guard: Optional[NonFiniteGuard] = None
         if guard_config.enabled:
             self.guard = NonFiniteGuard(guard_config, world_size)
             self.grad_scaler = GuardedGradScaler(self.guard, enabled=self.grad_scaler.is_enabled())
+
+    def setup(self, test_mode="val") -> None:
+        """nerfstudio's set-up (data, model, checkpoint); bad input ends it with one line (exit status 1)."""
+        with exit_on_input_error():
+            super().setup(test_mode)
+
+    def train(self) -> None:
+        """nerfstudio's training loop; bad input met on the way (by the data-loading worker), or a
+        worker killed by the system, ends it with one line."""
+        with exit_on_input_error(DataWorkerKilled):
+            super().train()
 
     # ---------------------------------------------------------------- guard
     def setup_optimizers(self) -> Optimizers:
@@ -300,6 +345,8 @@ class SeathruTrainer(Trainer):
         final_dir.mkdir(parents=True, exist_ok=True)
         target = final_dir / tmp.name
         os.replace(tmp, target)
+        with contextlib.suppress(OSError):  # empty now: a finished run leaves no staging folder behind
+            staging.rmdir()
         _fsync_dir(final_dir)
         if self.config.save_only_latest_checkpoint:
             for old in final_dir.glob(CHECKPOINT_GLOB):
@@ -309,13 +356,8 @@ class SeathruTrainer(Trainer):
     def _load_checkpoint(self) -> None:
         load_dir = self.config.load_dir
         if load_dir is not None:
-            if not Path(load_dir).is_dir():
-                raise FileNotFoundError(f"--load-dir {load_dir}: no such folder (it is a run's nerfstudio_models/)")
-            if self.config.load_step is None and not list(Path(load_dir).glob(CHECKPOINT_GLOB)):
-                raise FileNotFoundError(
-                    f"--load-dir {load_dir} holds no checkpoint (step-*.ckpt): the run was stopped before its first "
-                    "save. Start it again without --load-dir."
-                )
+            check_checkpoint_folder(Path(load_dir), self.config.load_step)
+        compat.allow_nerfstudio_checkpoints()  # nerfstudio's torch.load(weights_only=True) reads NumPy scalars
         super()._load_checkpoint()
         if load_dir is None and self.config.load_checkpoint is None:
             return

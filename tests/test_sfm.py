@@ -183,3 +183,64 @@ def test_sparse_depths_do_not_wrap_whatever_the_mappers_scale(sfm_run, tmp_path,
         ratios.append(after[both] / before[both])
     ratios = np.concatenate(ratios)
     assert np.all(np.abs(ratios / np.median(ratios) - 1.0) < 1e-3), np.abs(ratios / np.median(ratios) - 1.0).max()
+
+
+# ------------------------------------------------------------------ repeatability and retries
+SMALL = dict(width=160, height=120, num_views=10, sfm_points_per_view=0)
+
+
+def display_copies(scene: Path, folder: Path, prefix: str = "") -> Path:
+    """The display copies that run_sfm reads, as seathru-process-data writes them."""
+    from seathru_nerfstudio.data.linear_images import read_linear_image
+    from seathru_nerfstudio.data.sfm import write_display_copy
+
+    for path in sorted((scene / "images").glob("*.png")):
+        write_display_copy(folder / f"{prefix}{path.name}", read_linear_image(path)[..., :3])
+    return folder
+
+
+@pytest.fixture(scope="module")
+def small_scene(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("sfm_small")
+    scene = generate(SynthConfig(output_dir=root / "scene", preset="water", seed=3, **SMALL))
+    return display_copies(scene, root / "display")
+
+
+def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path) -> None:
+    """COLMAP numbers images in the order its extraction threads finish them, and its two-view
+    RANSAC draws a new seed each run: without the fixes, the poses (and on harder captures the
+    registered set) change from run to run."""
+    from seathru_nerfstudio.data.sfm import run_sfm
+
+    runs = []
+    for k in range(3):
+        result = run_sfm(small_scene, tmp_path / f"work_{k}", camera_model="PINHOLE")
+        reconstruction = result.reconstruction
+        poses = {reconstruction.images[i].name: reconstruction.images[i].cam_from_world().matrix() for i in reconstruction.reg_image_ids()}
+        runs.append((result.registered, poses, reconstruction.num_points3D()))
+    names = sorted(p.name for p in small_scene.iterdir())
+    for registered, poses, num_points in runs:
+        assert registered == names  # registers fully ...
+        assert num_points == runs[0][2]
+        for name in names:  # ... and identically, to the last bit
+            assert np.array_equal(poses[name], runs[0][1][name]), name
+
+
+def test_a_small_registration_is_retried_then_refused_below_the_users_minimum(small_scene, tmp_path) -> None:
+    """Two unrelated scenes in one folder: the best model holds at most one of them, the mapper
+    tries its other settings, and a minimum above that share fails naming the folder."""
+    import shutil
+
+    from seathru_nerfstudio.data.sfm import MAPPER_ATTEMPTS, RETRY_BELOW_FRACTION, SfmError, run_sfm
+
+    other = generate(SynthConfig(output_dir=tmp_path / "other", preset="fog", seed=11, **SMALL))
+    mixed = display_copies(other, tmp_path / "mixed", prefix="other_")
+    for path in small_scene.iterdir():
+        shutil.copy(path, mixed / path.name)
+    total = len(list(mixed.iterdir()))
+    result = run_sfm(mixed, tmp_path / "work", camera_model="PINHOLE", min_registered_fraction=0.0, source="capture/")
+    assert len(result.registered) <= total - SMALL["num_views"] < RETRY_BELOW_FRACTION * total
+    assert len(result.attempts) == len(MAPPER_ATTEMPTS)  # every setting tried
+    assert len(result.registered) == max(result.attempts)  # and the best model kept
+    with pytest.raises(SfmError, match=r"registered only \d+ of the 20 images of capture/ .*--min-registered-fraction 0.6"):
+        run_sfm(mixed, tmp_path / "work_2", camera_model="PINHOLE", min_registered_fraction=0.6, source="capture/")

@@ -6,7 +6,9 @@ appear whole or not at all.
 * Folders: :func:`atomic_output_folder` builds everything in a hidden sibling
   (``.<name>.partial-*``) and renames it into place when the build succeeds; an interrupted or
   failed build leaves no half-written folder, and the folder it replaces (``--overwrite``)
-  stays untouched until the last moment.
+  stays untouched until the last moment. The folder and files get the modes that the user's
+  umask gives a plain ``mkdir`` / ``open`` (0755 / 0644 under umask 022), not the 0700 / 0600 of
+  Python's ``tempfile``.
 """
 
 from __future__ import annotations
@@ -22,9 +24,25 @@ import cv2
 import numpy as np
 import numpy.typing as npt
 
+from seathru_nerfstudio.input_errors import InputError
 
-class OutputFolderError(ValueError):
-    """The output folder cannot be written (it is a file, or it holds files and may not be replaced)."""
+
+class OutputFolderError(InputError):
+    """The output folder cannot be written (it is a file, it holds files and may not be replaced, or
+    its parent is not writable)."""
+
+
+def current_umask() -> int:
+    """The process's umask (read by setting it and putting it back: POSIX has no plain getter)."""
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _as_if_created(path: Path, mode: int) -> None:
+    """Give ``path`` (made by ``tempfile``, mode 0700/0600) the mode a plain ``mkdir``/``open``
+    would have given it under the current umask (``mode`` 0o777 or 0o666 before the mask)."""
+    os.chmod(path, mode & ~current_umask())
 
 
 def to_uint16(image: npt.NDArray[np.floating]) -> npt.NDArray[np.uint16]:
@@ -55,6 +73,7 @@ def write_text_atomic(path: Path, text: str) -> None:
     try:
         with os.fdopen(handle, "w", encoding="utf-8") as file:
             file.write(text)
+        _as_if_created(Path(temporary), 0o666)
         os.replace(temporary, path)
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
@@ -71,19 +90,36 @@ def check_output_folder(folder: Path, overwrite: bool) -> None:
         )
 
 
+def check_writable_parent(folder: Path) -> None:
+    """Raise :class:`OutputFolderError` unless the nearest existing parent of ``folder`` accepts a
+    new entry: tried with a real folder, made and removed at once (permission bits tell neither a
+    read-only file system nor what root may do)."""
+    folder = Path(folder).absolute()
+    parent = next(p for p in folder.parents if p.exists())
+    try:
+        Path(tempfile.mkdtemp(prefix=f".{folder.name}.probe-", dir=parent)).rmdir()
+    except OSError as error:
+        raise OutputFolderError(
+            f"cannot create --output-dir {folder}: {parent} is not writable ({error.strerror}). "
+            "Choose a folder you can write to"
+        ) from None
+
+
 @contextlib.contextmanager
 def atomic_output_folder(folder: Path, overwrite: bool = False) -> Iterator[Path]:
     """Yield an empty hidden sibling of ``folder`` to build in; when the block ends without an
     error, it becomes ``folder`` (replacing what was there, which needs ``overwrite`` unless the
     folder is missing or empty). On an error the build is deleted and ``folder`` is untouched.
 
-    Raises :class:`OutputFolderError` before the block runs, and again before the swap (the
-    folder may have been filled meanwhile), when ``folder`` may not be written.
+    Raises :class:`OutputFolderError` before the block runs (``folder`` may not be replaced, or its
+    parent is not writable), and again before the swap (the folder may have been filled meanwhile).
     """
     folder = Path(folder)
     check_output_folder(folder, overwrite)
+    check_writable_parent(folder)
     folder.parent.mkdir(parents=True, exist_ok=True)
     build = Path(tempfile.mkdtemp(prefix=f".{folder.name}.partial-", dir=folder.parent))
+    _as_if_created(build, 0o777)
     try:
         yield build
         check_output_folder(folder, overwrite)

@@ -22,9 +22,10 @@ from torch import Tensor
 from nerfstudio.data.datasets.base_dataset import InputDataset
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from seathru_nerfstudio.data.ground_truth import GT_CLEAN_FILENAMES, GT_DEPTH_FILENAMES
+from seathru_nerfstudio.input_errors import InputError
 
 
-class ImageReadError(ValueError):
+class ImageReadError(InputError):
     """An image file is missing, unreadable or of an unsupported layout."""
 
 

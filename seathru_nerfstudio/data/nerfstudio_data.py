@@ -37,9 +37,11 @@ from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, legacy_paths
+from seathru_nerfstudio.data.input_checks import check_images, load_transforms
 from seathru_nerfstudio.data.linear_images import read_linear_image
 from seathru_nerfstudio.data.range_diversity import RangeSpread, range_spread
 from seathru_nerfstudio.data.sfm_observations import SfmObservations, sfm_observations
+from seathru_nerfstudio.input_errors import InputError
 from seathru_nerfstudio.metadata_keys import EXTENT_KEY, RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY
 
 NEAR_PERCENTILE = 0.1
@@ -58,7 +60,7 @@ class SeathruNerfstudioDataParserConfig(NerfstudioDataParserConfig):
     Reads every training image once more at start-up, one at a time (about 1 s on the demos)."""
 
 
-class GroundTruthError(ValueError):
+class GroundTruthError(InputError):
     """The frames declare ground truth for some frames only, or name files that do not exist."""
 
 
@@ -66,7 +68,9 @@ class SeathruNerfstudio(Nerfstudio):
     """nerfstudio's parser; the scale, SfM bounds and declared ground truth added to ``metadata``."""
 
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
+        load_transforms(self.config.data)  # its frames and the files they name, checked before nerfstudio reads them
         outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        check_images(outputs.image_filenames, outputs.cameras.height.flatten().tolist(), outputs.cameras.width.flatten().tolist())
         outputs.metadata.update(self._ground_truth([Path(p) for p in outputs.image_filenames]))
         scale = float(outputs.dataparser_scale)
         outputs.metadata[SCALE_KEY] = scale

@@ -17,8 +17,8 @@ interrupted or failed run leaves no half-written dataset; the input folder is on
 
 from __future__ import annotations
 
+import hashlib
 import shutil
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal, Optional
@@ -27,7 +27,7 @@ import numpy as np
 import tyro
 
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress
-from seathru_nerfstudio.data.io import OutputFolderError, atomic_output_folder, check_output_folder, to_uint16, write_png16
+from seathru_nerfstudio.data.io import atomic_output_folder, check_output_folder, check_writable_parent, to_uint16, write_png16
 from seathru_nerfstudio.data.raw import (
     LINEAR_EXTENSIONS,
     RAW_EXTENSIONS,
@@ -41,11 +41,20 @@ from seathru_nerfstudio.data.raw import (
     is_raw,
     read_input_image,
 )
-from seathru_nerfstudio.data.sfm import MatchingMethod, SfmError, SfmResult, report, run_sfm, write_display_copy, write_outputs
+from seathru_nerfstudio.data.sfm import (
+    MIN_REGISTERED_FRACTION,
+    MatchingMethod,
+    SfmResult,
+    report,
+    run_sfm,
+    write_display_copy,
+    write_outputs,
+)
+from seathru_nerfstudio.input_errors import InputError, exit_on_input_error
 from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 
-class ProcessDataError(RuntimeError):
+class ProcessDataError(InputError):
     """The input cannot be turned into a dataset; the message says why and what to do."""
 
 
@@ -68,6 +77,8 @@ class ProcessSeathruData:
     """COLMAP camera model shared by all images (OPENCV, as in the published SeaThru-NeRF data)."""
     matching_method: MatchingMethod = "auto"
     """auto: exhaustive up to 50 images, sequential (video-like captures) beyond."""
+    min_registered_fraction: float = MIN_REGISTERED_FRACTION
+    """Fail (exit status 1, nothing written) when structure from motion registers less than this share of the images; 0 keeps any registration."""
     skip_sfm: bool = False
     """Only decode and white-balance; write no poses."""
     overwrite: bool = False
@@ -124,6 +135,7 @@ def _check_output(output_dir: Path, data: Path, overwrite: bool) -> None:
     if out == src or out in src.parents:
         raise ProcessDataError(f"--output-dir {output_dir} would contain the input folder {data}; pick another folder")
     check_output_folder(output_dir, overwrite)
+    check_writable_parent(output_dir)
 
 
 def process(config: ProcessSeathruData) -> ProcessReport:
@@ -133,6 +145,8 @@ def process(config: ProcessSeathruData) -> ProcessReport:
         raise ProcessDataError(f"--clip-percent must be in [0, 50), got {config.clip_percent}")
     if config.max_long_side is not None and config.max_long_side < 16:
         raise ProcessDataError(f"--max-long-side must be at least 16 px, got {config.max_long_side}")
+    if not 0.0 <= config.min_registered_fraction <= 1.0:
+        raise ProcessDataError(f"--min-registered-fraction must be in [0, 1], got {config.min_registered_fraction}")
     captures = find_captures(config.data)
     _check_output(config.output_dir, config.data, config.overwrite)
     if config.white_balance == "camera" and not is_raw(captures[0]):
@@ -153,6 +167,7 @@ def _build(config: ProcessSeathruData, captures: list[Path], build: Path) -> Pro
     histogram = ChannelHistogram()
     sizes: dict[str, tuple[int, int]] = {}
     skipped: dict[str, str] = {}
+    copies: dict[str, list[str]] = {}  # pixel hash -> files
 
     # Pass 1: decode, downscale, accumulate the joint histogram. The decoded frames wait in
     # the scratch folder as uint16 (exact for RAW, which LibRaw outputs at 16 bits).
@@ -168,13 +183,22 @@ def _build(config: ProcessSeathruData, captures: list[Path], build: Path) -> Pro
             image = downscale_to_long_side(image, config.max_long_side)
             sizes[path.name] = image.shape[:2]
             histogram.add(image)
-            np.save(decoded_dir / f"{path.stem}.npy", to_uint16(image))
+            codes = to_uint16(image)
+            copies.setdefault(hashlib.sha1(codes.tobytes()).hexdigest(), []).append(path.name)
+            np.save(decoded_dir / f"{path.stem}.npy", codes)
     if not sizes:
         raise ProcessDataError(f"none of the {len(captures)} files in {config.data} could be read: {skipped}")
     if len(set(sizes.values())) > 1:
         raise ProcessDataError(
             "the images do not all have the same size, but SeaThru-NeRF assumes one camera. Sizes: "
             + image_sizes_summary(sizes)
+        )
+
+    duplicates = [names for names in copies.values() if len(names) > 1]
+    if duplicates and not config.skip_sfm:
+        raise ProcessDataError(
+            f"{config.data} holds identical images: {'; '.join(' = '.join(names) for names in duplicates)}. Structure "
+            "from motion needs the camera to move between shots; remove the copies"
         )
 
     white_balance = estimate_white_balance(histogram, config.white_balance, config.clip_percent)
@@ -198,7 +222,13 @@ def _build(config: ProcessSeathruData, captures: list[Path], build: Path) -> Pro
     result = None
     if not config.skip_sfm:
         result = run_sfm(
-            display_dir, work / "sfm", camera_model=config.camera_model, matching=config.matching_method, verbose=config.verbose
+            display_dir,
+            work / "sfm",
+            camera_model=config.camera_model,
+            matching=config.matching_method,
+            verbose=config.verbose,
+            min_registered_fraction=config.min_registered_fraction,
+            source=config.data,
         )
         report(result)
         write_outputs(result, build)
@@ -213,11 +243,8 @@ def entrypoint() -> None:
     """Console script: exit status 1 with a one-line reason on bad input."""
     silence_upstream_warnings()
     config = tyro.cli(ProcessSeathruData)
-    try:
+    with exit_on_input_error():
         config.main()
-    except (ProcessDataError, SfmError, OutputFolderError) as error:
-        CONSOLE.print(f"[bold red]Error: {error}")
-        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -37,13 +37,15 @@ from nerfstudio.data.dataparsers.colmap_dataparser import ColmapDataParser, Colm
 from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
+from seathru_nerfstudio.data.input_checks import check_images
 from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, frustum_extent
+from seathru_nerfstudio.input_errors import InputError
 
 IMAGE_FOLDER_CANDIDATES = (Path("images_wb"), Path("Images_wb"), Path("images"))
 IMAGE_SUFFIXES = frozenset({".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr"})
 
 
-class SeathruDataError(ValueError):
+class SeathruDataError(InputError):
     """The dataset folder does not have the expected layout or its parts disagree."""
 
 
@@ -190,6 +192,7 @@ class SeathruDataParser(ColmapDataParser):
     def _generate_dataparser_outputs(self, split: str = "train", **kwargs) -> DataparserOutputs:
         self._resolve_layout()
         outputs = super()._generate_dataparser_outputs(split, **kwargs)
+        check_images(outputs.image_filenames, outputs.cameras.height.flatten().tolist(), outputs.cameras.width.flatten().tolist())
         near_far = self._near_far(self.config.data / self.config.colmap_path)
         if not np.all(np.isfinite(near_far)) or np.any(near_far[:, 0] <= 0) or np.any(near_far[:, 1] <= near_far[:, 0]):
             raise SeathruDataError(f"near/far bounds must satisfy 0 < near < far, got {near_far.tolist()}")

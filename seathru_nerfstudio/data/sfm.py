@@ -19,7 +19,7 @@ Conventions
 from __future__ import annotations
 
 import contextlib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Literal
 
@@ -29,6 +29,7 @@ import numpy.typing as npt
 import pycolmap
 
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress, status
+from seathru_nerfstudio.input_errors import InputError
 
 # Import order matters: pycolmap's extension exports its own zlib symbols. If it is loaded
 # before OpenCV, OpenCV's libpng binds deflate* to it and cv2.imwrite(".png") aborts the
@@ -42,8 +43,8 @@ DISPLAY_GAMMA = 2.2
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
-class SfmError(RuntimeError):
-    """Structure from motion could not produce a usable reconstruction."""
+class SfmError(InputError):
+    """Structure from motion could not produce a usable reconstruction from these images."""
 
 
 def display_transform(image: npt.NDArray[np.floating], percentile: float = 99.5) -> npt.NDArray[np.uint8]:
@@ -72,10 +73,36 @@ class SfmResult:
     reconstruction: pycolmap.Reconstruction
     registered: list[str]
     unregistered: list[str]
+    attempts: list[int] = field(default_factory=list)
+    """Images registered by the best model of each mapper attempt, in order (:data:`MAPPER_ATTEMPTS`)."""
 
     @property
     def registration_rate(self) -> float:
         return len(self.registered) / max(1, len(self.registered) + len(self.unregistered))
+
+
+MIN_REGISTERED_FRACTION = 0.5
+"""Default of ``--min-registered-fraction``: below this share of the images in the best model,
+structure from motion fails (a NeRF of a few views of a larger capture is not what was asked)."""
+RETRY_BELOW_FRACTION = 0.8
+"""The mapper tries again (:data:`MAPPER_ATTEMPTS`) while its best model holds less than this share."""
+MAPPER_ATTEMPTS: tuple[dict[str, float], ...] = (
+    {},  # COLMAP's defaults
+    # other initial pairs: more of them tried, weaker ones accepted, and a different sampling seed
+    {"seed": 1, "init_num_trials": 400, "init_min_num_inliers": 50, "init_min_tri_angle": 8.0, "abs_pose_min_num_inliers": 15},
+    # what a hard underwater capture (little texture, short baselines) may still register with
+    {
+        "seed": 2,
+        "init_num_trials": 800,
+        "init_min_num_inliers": 25,
+        "init_min_tri_angle": 4.0,
+        "abs_pose_min_num_inliers": 10,
+        "abs_pose_min_inlier_ratio": 0.15,
+    },
+)
+"""Incremental mapper settings, tried in order while the best model is small (the features and
+matches are kept): each is deterministic, so the whole sequence is."""
+SEED = 0
 
 
 @contextlib.contextmanager
@@ -90,24 +117,61 @@ def _colmap_logging(verbose: bool) -> Iterator[None]:
         pycolmap.logging.minloglevel = previous
 
 
+def mapper_options(attempt: dict[str, float]) -> pycolmap.IncrementalPipelineOptions:
+    """The incremental mapper's options for one of :data:`MAPPER_ATTEMPTS`, deterministic.
+
+    Repeatability needs one thread in the mapper (``num_threads``, its own and the inner
+    mapper's: bundle adjustment and pose RANSAC on several threads give different models run to
+    run) and fixed seeds."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.min_model_size = 3  # keep small models: we report a partial registration, not nothing
+    options.num_threads = 1
+    options.mapper.num_threads = 1
+    seed = int(attempt.get("seed", SEED))
+    options.random_seed = options.mapper.random_seed = options.triangulation.random_seed = seed
+    if "init_num_trials" in attempt:
+        options.init_num_trials = int(attempt["init_num_trials"])
+    for name in ("init_min_num_inliers", "abs_pose_min_num_inliers"):
+        if name in attempt:
+            setattr(options.mapper, name, int(attempt[name]))
+    for name in ("init_min_tri_angle", "abs_pose_min_inlier_ratio"):
+        if name in attempt:
+            setattr(options.mapper, name, float(attempt[name]))
+    return options
+
+
 def run_sfm(
     image_dir: Path,
     work_dir: Path,
     camera_model: str = "OPENCV",
     matching: MatchingMethod = "auto",
     verbose: bool = False,
+    min_registered_fraction: float = MIN_REGISTERED_FRACTION,
+    source: Path | str | None = None,
 ) -> SfmResult:
     """SIFT extraction, matching and incremental mapping on every image in ``image_dir``.
 
     One camera (``camera_model``, COLMAP name) is shared by all images; its focal length
     starts at 1.2 × the long side (no EXIF in the display copies) and is refined by bundle
-    adjustment. ``work_dir`` receives ``database.db`` and the mapper's models. Returns the
-    model with the most registered images; images outside it are ``unregistered``.
-    Raises :class:`SfmError` when no model could be built.
+    adjustment. ``work_dir`` receives ``database.db`` and the mapper's models.
+
+    The same images give the same result: features are extracted on one thread (COLMAP numbers
+    the images in the order its threads finish them, and the mapper breaks ties by number), the
+    two-view RANSAC has a fixed seed, and the mapper runs on one thread with fixed seeds
+    (:func:`mapper_options`). While the best model holds less than :data:`RETRY_BELOW_FRACTION`
+    of the images, the mapper runs again with the next of :data:`MAPPER_ATTEMPTS` (other initial
+    pairs); the model with the most images wins (the first, on a tie).
+
+    Returns that model; images outside it are ``unregistered``. Raises :class:`SfmError` when no
+    model could be built, or when it holds less than ``min_registered_fraction`` of the images.
+    Messages name ``source`` (the user's folder; default ``image_dir``).
     """
+    source = image_dir if source is None else source
     names = sorted(p.name for p in image_dir.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if len(names) < 2:
-        raise SfmError(f"structure from motion needs at least 2 images, {image_dir} has {len(names)}")
+        raise SfmError(f"structure from motion needs at least 2 images, {source} has {len(names)}")
+    if not 0.0 <= min_registered_fraction <= 1.0:
+        raise SfmError(f"--min-registered-fraction must be in [0, 1], got {min_registered_fraction}")
     work_dir.mkdir(parents=True, exist_ok=True)
     database = work_dir / "database.db"
     if matching == "auto":
@@ -117,12 +181,11 @@ def run_sfm(
     reader.camera_model = camera_model
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = 3200
+    extraction.num_threads = 1  # image numbers in name order (see the docstring)
     matching_options = pycolmap.FeatureMatchingOptions()
-    mapper = pycolmap.IncrementalPipelineOptions()
-    mapper.min_model_size = 3  # keep small models: we report a partial registration, not nothing
-    mapper.random_seed = 0
-    mapper.mapper.random_seed = 0
-    mapper.triangulation.random_seed = 0
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = SEED  # default -1: a new seed every run, other inliers every run
+    pycolmap.set_random_seed(SEED)
 
     with _colmap_logging(verbose):
         with status(f"[bold yellow]Extracting SIFT features from {len(names)} images...", verbose=verbose):
@@ -136,30 +199,55 @@ def run_sfm(
                 device=pycolmap.Device.cpu,
             )
         with status(f"[bold yellow]Matching features ({matching})...", verbose=verbose):
-            if matching == "exhaustive":
-                pycolmap.match_exhaustive(database, matching_options=matching_options, device=pycolmap.Device.cpu)
-            else:
-                pycolmap.match_sequential(database, matching_options=matching_options, device=pycolmap.Device.cpu)
-        progress = get_progress("[bold yellow]Incremental mapping (images registered)")
-        with progress:
-            task = progress.add_task("mapping", total=len(names))
-            models = pycolmap.incremental_mapping(
-                database,
-                image_dir,
-                work_dir / "models",
-                options=mapper,
-                next_image_callback=lambda: progress.advance(task),
-            )
-            progress.update(task, completed=max((m.num_reg_images() for m in models.values()), default=0))
-    if not models:
+            match = pycolmap.match_exhaustive if matching == "exhaustive" else pycolmap.match_sequential
+            match(database, matching_options=matching_options, verification_options=verification, device=pycolmap.Device.cpu)
+        best, attempts = None, []
+        for number, attempt in enumerate(MAPPER_ATTEMPTS):
+            models = _map(database, image_dir, work_dir / f"models_{number}", attempt, len(names), number)
+            attempts.append(max((m.num_reg_images() for m in models.values()), default=0))
+            if models and (best is None or attempts[-1] > best.num_reg_images()):
+                best = max(models.values(), key=lambda m: m.num_reg_images())
+            if best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names):
+                break
+            if number + 1 < len(MAPPER_ATTEMPTS):
+                CONSOLE.print(
+                    f"[yellow]The mapper registered {attempts[-1]}/{len(names)} images; trying again with other "
+                    f"initial pairs ({number + 2}/{len(MAPPER_ATTEMPTS)})"
+                )
+    if best is None:
         raise SfmError(
-            f"structure from motion registered none of the {len(names)} images in {image_dir}: too few "
-            "SIFT matches between views (little overlap, blur, or texture-less water?)"
+            f"structure from motion registered none of the {len(names)} images of {source} "
+            f"({len(MAPPER_ATTEMPTS)} tries): no two views overlap with parallax. The camera must move between "
+            "views (not only turn) and the views must share textured content; check for blur or texture-less water"
         )
-    best = max(models.values(), key=lambda m: m.num_reg_images())
     registered = sorted(best.images[i].name for i in best.reg_image_ids())
     unregistered = sorted(set(names) - set(registered))
-    return SfmResult(reconstruction=best, registered=registered, unregistered=unregistered)
+    result = SfmResult(reconstruction=best, registered=registered, unregistered=unregistered, attempts=attempts)
+    if result.registration_rate < min_registered_fraction:
+        raise SfmError(
+            f"structure from motion registered only {len(registered)} of the {len(names)} images of {source} "
+            f"({100 * result.registration_rate:.0f}%, best of {len(attempts)} tries), below --min-registered-fraction "
+            f"{min_registered_fraction:g}. Not registered: {_shorten(unregistered)}. Add views that overlap them, "
+            "or lower --min-registered-fraction to train on the registered part"
+        )
+    return result
+
+
+def _map(database: Path, image_dir: Path, output: Path, attempt: dict[str, float], total: int, number: int) -> dict:
+    """One run of pycolmap's incremental mapper (:func:`mapper_options` of ``attempt``) with a progress bar."""
+    output.mkdir(parents=True, exist_ok=True)
+    progress = get_progress(f"[bold yellow]Incremental mapping, try {number + 1} (images registered)")
+    with progress:
+        task = progress.add_task("mapping", total=total)
+        models = pycolmap.incremental_mapping(
+            database, image_dir, output, options=mapper_options(attempt), next_image_callback=lambda: progress.advance(task)
+        )
+        progress.update(task, completed=max((m.num_reg_images() for m in models.values()), default=0))
+    return models
+
+
+def _shorten(names: list[str], limit: int = 8) -> str:
+    return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
 def llff_poses_bounds(reconstruction: pycolmap.Reconstruction) -> tuple[list[str], npt.NDArray[np.float64]]:
