@@ -10,6 +10,9 @@ PYTHON=${PYTHON:-python3}
 apt_packages=()
 command -v ffmpeg >/dev/null || apt_packages+=(ffmpeg)
 command -v chromium >/dev/null || apt_packages+=(chromium)
+# Mitsuba's fast CPU variant (llvm_ad_rgb, seathru-pathtrace) JIT-compiles with libLLVM >= 19; without it
+# the renderer falls back to the much slower scalar_rgb.
+ls /usr/lib/*/libLLVM.so.19* /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 || apt_packages+=(libllvm19)
 if [ ${#apt_packages[@]} -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
     echo "setup: apt-get install ${apt_packages[*]}"
@@ -23,5 +26,5 @@ fi
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
 "$VENV/bin/python" -m pip install -q --upgrade pip
 # torch 2.14.1 / torchvision 0.29.1 are the pair tested here (CPU, and CUDA wheels on PyPI).
-"$VENV/bin/python" -m pip install -q torch==2.14.1 torchvision==0.29.1 -e ".[test]"
+"$VENV/bin/python" -m pip install -q torch==2.14.1 torchvision==0.29.1 -e ".[test,pathtrace]"
 echo "setup: done ($VENV)"
