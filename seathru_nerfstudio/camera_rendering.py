@@ -15,7 +15,7 @@ import torch
 
 from nerfstudio.cameras.rays import RayBundle
 
-from seathru_nerfstudio import viewer
+from seathru_nerfstudio import export, viewer
 from seathru_nerfstudio.lazy_outputs import LazyOutputs
 
 WATER_OUTPUTS = ("rgb", "direct", "backscatter")
@@ -33,6 +33,7 @@ def proposal_depth_names(model: Any) -> Tuple[str, ...]:
 def lazy_camera_outputs(model: Any, camera_ray_bundle: RayBundle) -> LazyOutputs:
     """Every output of a camera's image (``H x W x C``), each rendered when first read."""
     names = viewer.DISPLAY_OUTPUTS + WATER_OUTPUTS + OBJECT_OUTPUTS + MEDIUM_OUTPUTS + proposal_depth_names(model)
+    names += export.EXPORT_OUTPUTS  # for ns-export (surface_depth), from the object outputs
 
     @torch.no_grad()  # read later, outside the caller's no_grad (ns-render reads with grad on)
     def compute(name: str, outputs) -> Dict[str, torch.Tensor]:
@@ -40,6 +41,8 @@ def lazy_camera_outputs(model: Any, camera_ray_bundle: RayBundle) -> LazyOutputs
             return {name: model.viewer_controls.display_output(name, outputs)}
         if name in MEDIUM_OUTPUTS:
             return render_medium_maps(model, camera_ray_bundle)
+        if name in export.EXPORT_OUTPUTS:
+            return {name: export.export_output(name, outputs)}
         return render_image(model, camera_ray_bundle, with_medium=name in WATER_OUTPUTS)
 
     return LazyOutputs(names, compute)

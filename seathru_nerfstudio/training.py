@@ -48,7 +48,7 @@ from nerfstudio.engine.trainer import TRAIN_INTERATION_OUTPUT, Trainer, TrainerC
 from nerfstudio.utils import comms
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio import compat
+from seathru_nerfstudio import compat, medium_report
 from seathru_nerfstudio.data.datamanager import DataWorkerKilled
 from seathru_nerfstudio.input_errors import InputError, exit_on_input_error
 
@@ -352,6 +352,7 @@ class SeathruTrainer(Trainer):
             for old in final_dir.glob(CHECKPOINT_GLOB):
                 if old != target:
                     old.unlink()
+        medium_report.write_for_pipeline(self.pipeline, self.base_dir / medium_report.REPORT_NAME, step)  # beside config.yml
 
     def _load_checkpoint(self) -> None:
         load_dir = self.config.load_dir
