@@ -244,3 +244,62 @@ def test_a_small_registration_is_retried_then_refused_below_the_users_minimum(sm
     assert len(result.registered) == max(result.attempts)  # and the best model kept
     with pytest.raises(SfmError, match=r"registered only \d+ of the 20 images of capture/ .*--min-registered-fraction 0.6"):
         run_sfm(mixed, tmp_path / "work_2", camera_model="PINHOLE", min_registered_fraction=0.6, source="capture/")
+
+
+def test_every_data_path_gives_the_method_the_same_sfm(sfm_run, tmp_path, monkeypatch) -> None:
+    """Without depth maps, the published layout (seathru-data: sparse/0) and ns-process-data's
+    (nerfstudio-data: colmap/sparse/0) get sparse depths made from the COLMAP model's tracks, which
+    agree with seathru-process-data's depth/ maps wherever both hold a point, and the method gets
+    its SfM from them (bounds, range spread, observation table). The dataset is never written to."""
+    import shutil
+
+    from seathru_nerfstudio.data.nerfstudio_data import SeathruNerfstudioDataParserConfig, read_sparse_depths
+    from seathru_nerfstudio.data.seathru_dataparser import SeathruDataParserConfig
+    from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SFM_OBSERVATIONS_KEY
+
+    monkeypatch.setenv("SEATHRU_CACHE", str(tmp_path / "cache"))
+    _, dataset, _, _ = sfm_run
+    ours = SeathruNerfstudioDataParserConfig(data=dataset).setup().get_dataparser_outputs("train")
+    published = tmp_path / "published"  # images/ and sparse/0 only, as the SeaThru-NeRF release
+    shutil.copytree(dataset / "images", published / "images")
+    shutil.copytree(dataset / "sparse", published / "sparse")
+    shutil.copy(dataset / "poses_bounds.npy", published)
+    ns_layout = tmp_path / "ns"  # ns-process-data: transforms.json without depths, colmap/sparse/0
+    shutil.copytree(dataset / "images", ns_layout / "images")
+    shutil.copytree(dataset / "sparse", ns_layout / "colmap" / "sparse")
+    transforms = json.loads((dataset / "transforms.json").read_text())
+    for frame in transforms["frames"]:
+        frame.pop("depth_file_path")
+    (ns_layout / "transforms.json").write_text(json.dumps(transforms))
+    before = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(tmp_path.rglob("*")) if p.is_file()}
+    theirs = {
+        "published": SeathruDataParserConfig(data=published).setup().get_dataparser_outputs("train"),
+        "ns": SeathruNerfstudioDataParserConfig(data=ns_layout).setup().get_dataparser_outputs("train"),
+    }
+    after = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(tmp_path.rglob("*")) if p.is_file() and "cache" not in p.parts}
+    assert after == {p: h for p, h in before.items() if "cache" not in p.parts}
+    ours_by_name = dict(zip((p.name for p in ours.image_filenames), ours.metadata["depth_filenames"]))
+    for name, outputs in theirs.items():
+        assert outputs.metadata[SFM_OBSERVATIONS_KEY].num_observations > 0 and RANGE_SPREAD_KEY in outputs.metadata, name
+        unit = float(outputs.metadata["depth_unit_scale_factor"])
+        heights, widths = outputs.cameras.height, outputs.cameras.width
+        maps = read_sparse_depths(outputs.metadata["depth_filenames"], heights, widths)
+        for image, made in zip(outputs.image_filenames, maps):
+            if image.name not in ours_by_name:
+                continue
+            (written,) = read_sparse_depths([ours_by_name[image.name]], heights[:1], widths[:1])
+            both = (made > 0) & (written > 0)
+            assert both.sum() > 10, (name, image.name)
+            np.testing.assert_allclose(made[both] * unit, written[both] * 1e-3, rtol=2e-3, atol=2e-3)
+
+
+def test_a_dataset_with_no_sfm_at_all_says_in_one_line_what_is_lost(tmp_path, capsys) -> None:
+    from types import SimpleNamespace
+
+    from seathru_nerfstudio.data.nerfstudio_data import depths_from_colmap
+
+    outputs = SimpleNamespace(image_filenames=[tmp_path / "a.png"], metadata={})
+    depths_from_colmap(outputs, tmp_path)
+    message = " ".join(capsys.readouterr().out.split())
+    assert str(tmp_path) in message and "no COLMAP model" in message and "medium fit" in message
+    assert "depth_filenames" not in outputs.metadata

@@ -36,6 +36,7 @@ from nerfstudio.data.dataparsers.nerfstudio_dataparser import Nerfstudio, Nerfst
 from nerfstudio.data.utils.data_utils import get_depth_image_from_path
 from nerfstudio.utils.io import load_from_json
 from nerfstudio.utils.rich_utils import CONSOLE
+from seathru_nerfstudio.data.colmap_depths import COLMAP_MODEL_CANDIDATES, find_colmap_model, sparse_depth_maps
 from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, legacy_paths
 from seathru_nerfstudio.data.input_checks import check_images, load_transforms
 from seathru_nerfstudio.data.linear_images import read_linear_image
@@ -74,26 +75,10 @@ class SeathruNerfstudio(Nerfstudio):
         outputs.metadata.update(self._ground_truth([Path(p) for p in outputs.image_filenames]))
         scale = float(outputs.dataparser_scale)
         outputs.metadata[SCALE_KEY] = scale
-        depth_files = outputs.metadata.get("depth_filenames")
-        if depth_files:
-            unit = float(outputs.metadata["depth_unit_scale_factor"])
-            depths = read_sparse_depths(depth_files, outputs.cameras.height, outputs.cameras.width)
-            bounds = sfm_bounds(depths)
-            if bounds is not None:
-                outputs.metadata["near_plane"] = bounds[0] * unit * scale
-                outputs.metadata["far_plane"] = bounds[1] * unit * scale
-                outputs.metadata[EXTENT_KEY] = frustum_extent(outputs.cameras, outputs.metadata["far_plane"])
-            if split == "train":
-                spread = sfm_range_spread([depth * unit for depth in depths], outputs.cameras, scale)
-                outputs.metadata[RANGE_SPREAD_KEY] = spread
-                CONSOLE.print(spread.summary())
-                if self.config.sfm_observations:
-                    table = observations_of([depth * unit for depth in depths], outputs, scale)
-                    outputs.metadata[SFM_OBSERVATIONS_KEY] = table
-                    CONSOLE.print(
-                        f"SfM observations: {table.num_points} points seen {table.num_observations} times in all "
-                        "(for medium_fit_step)"
-                    )
+        if not outputs.metadata.get("depth_filenames"):
+            transforms = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
+            depths_from_colmap(outputs, transforms.parent)
+        add_sfm_metadata(outputs, split, self.config.sfm_observations)
         return outputs
 
     def _ground_truth(self, image_filenames: List[Path]) -> Dict[str, List[Path]]:
@@ -124,6 +109,51 @@ class SeathruNerfstudio(Nerfstudio):
                 "scene written before frames named them: write it again to declare them)"
             )
         return legacy
+
+
+def depths_from_colmap(outputs: DataparserOutputs, folder: Path) -> None:
+    """Give ``outputs`` sparse depth maps made from the COLMAP model under ``folder``
+    (:mod:`seathru_nerfstudio.data.colmap_depths`), or say in one line what is lost without one."""
+    model = find_colmap_model(folder)
+    if model is None:
+        CONSOLE.print(
+            f"[bold yellow]seathru: {folder} has no SfM depth maps (depth_file_path) and no COLMAP model "
+            f"({', '.join(str(p) for p in COLMAP_MODEL_CANDIDATES)}): training without SfM bounds, depth loss or medium fit"
+        )
+        return
+    names = [Path(p).name for p in outputs.image_filenames]
+    paths, unit = sparse_depth_maps(model, names)
+    outputs.metadata["depth_filenames"] = paths
+    outputs.metadata["depth_unit_scale_factor"] = unit
+    CONSOLE.print(f"seathru: sparse depths from the tracks of the COLMAP model {model} (cached in {paths[0].parent})")
+
+
+def add_sfm_metadata(outputs: DataparserOutputs, split: str, observations: bool, bounds: bool = True) -> None:
+    """From the sparse depth maps (``depth_filenames``, if any): the SfM near and far bounds and the
+    frustum extent (``bounds``), and on the training split the range spread and (``observations``)
+    the observation table of the medium fit."""
+    depth_files = outputs.metadata.get("depth_filenames")
+    if not depth_files:
+        return
+    scale = float(outputs.dataparser_scale)
+    unit = float(outputs.metadata["depth_unit_scale_factor"])
+    depths = read_sparse_depths(depth_files, outputs.cameras.height, outputs.cameras.width)
+    near_far = sfm_bounds(depths)
+    if bounds and near_far is not None:
+        outputs.metadata["near_plane"] = near_far[0] * unit * scale
+        outputs.metadata["far_plane"] = near_far[1] * unit * scale
+        outputs.metadata[EXTENT_KEY] = frustum_extent(outputs.cameras, outputs.metadata["far_plane"])
+    if split != "train":
+        return
+    spread = sfm_range_spread([depth * unit for depth in depths], outputs.cameras, scale)
+    outputs.metadata[RANGE_SPREAD_KEY] = spread
+    CONSOLE.print(spread.summary())
+    if observations:
+        table = observations_of([depth * unit for depth in depths], outputs, scale)
+        outputs.metadata[SFM_OBSERVATIONS_KEY] = table
+        CONSOLE.print(
+            f"SfM observations: {table.num_points} points seen {table.num_observations} times in all (for medium_fit_step)"
+        )
 
 
 def read_sparse_depths(depth_files, heights, widths) -> List[np.ndarray]:

@@ -38,7 +38,7 @@ from nerfstudio.plugins.registry_dataparser import DataParserSpecification
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.data.input_checks import check_images
-from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, frustum_extent
+from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, add_sfm_metadata, depths_from_colmap, frustum_extent
 from seathru_nerfstudio.input_errors import InputError
 
 IMAGE_FOLDER_CANDIDATES = (Path("images_wb"), Path("Images_wb"), Path("images"))
@@ -66,6 +66,8 @@ class SeathruDataParserConfig(ColmapDataParserConfig):
     linear data); to shrink on the fly use --pipeline.datamanager.camera-res-scale-factor."""
     eval_interval: int = 8
     """Every eval_interval-th image (by sorted name, starting with the first) is a test view."""
+    sfm_observations: bool = True
+    """Build the table of the COLMAP points' colours across views for the model's ``medium_fit_step``."""
 
 
 class SeathruDataParser(ColmapDataParser):
@@ -202,6 +204,9 @@ class SeathruDataParser(ColmapDataParser):
         outputs.metadata["far_plane"] = float(near_far[:, 1].max() * scale)
         outputs.metadata[EXTENT_KEY] = frustum_extent(outputs.cameras, outputs.metadata["far_plane"])
         outputs.metadata[SCALE_KEY] = scale
+        if not outputs.metadata.get("depth_filenames"):  # the model's tracks, as seathru-process-data gives them
+            depths_from_colmap(outputs, self.config.data / self.config.colmap_path)
+        add_sfm_metadata(outputs, split, self.config.sfm_observations, bounds=False)  # near/far: poses_bounds.npy
         return outputs
 
 
