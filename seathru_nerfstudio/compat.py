@@ -8,6 +8,9 @@ turning the safe loader off, we allow-list exactly the NumPy types those checkpo
 
 from __future__ import annotations
 
+import os
+from typing import Any, Dict
+
 import numpy as np
 import torch
 
@@ -27,3 +30,11 @@ def allow_nerfstudio_checkpoints() -> None:
         return
     dtypes = [np.dtype, *(type(np.dtype(t)) for t in (np.float64, np.float32, np.int64, np.int32, np.bool_))]
     add_safe_globals([_numpy_scalar_reconstructor(), *dtypes])
+
+
+def load_checkpoint(path: str | os.PathLike, map_location: str | torch.device = "cpu") -> Dict[str, Any]:
+    """A nerfstudio checkpoint (``step-*.ckpt``: ``step``, ``pipeline``, ``optimizers``,
+    ``schedulers``, ``scalers``) read with torch's safe loader, the allow-list registered first:
+    it does not depend on something else having imported :mod:`seathru_nerfstudio.config`."""
+    allow_nerfstudio_checkpoints()
+    return torch.load(path, map_location=map_location, weights_only=True)

@@ -15,6 +15,7 @@ import torch.distributed as dist
 import torch.multiprocessing as mp
 from torch.nn.parallel import DistributedDataParallel as DDP
 
+from seathru_nerfstudio.compat import load_checkpoint
 from tiny_training import make_scene, tiny_config
 
 pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
@@ -128,7 +129,7 @@ def test_only_rank_0_writes_checkpoints_and_logs(ranks):
     run = ranks["out"] / "tiny" / "seathru-nerf-lite" / "run"
     assert [p.name for p in (run / "nerfstudio_models").iterdir()] == [f"step-{ITERATIONS - 1:09d}.ckpt"]
     assert len(list(run.glob("events.out.tfevents.*"))) == 1
-    state = torch.load(run / "nerfstudio_models" / f"step-{ITERATIONS - 1:09d}.ckpt", map_location="cpu")
+    state = load_checkpoint(run / "nerfstudio_models" / f"step-{ITERATIONS - 1:09d}.ckpt")
     saved = {k[len("_model.module.") :]: v for k, v in state["pipeline"].items() if k.startswith("_model.module.")}
     for name, value in r0["final"].items():
         assert torch.equal(saved[name], value), name
@@ -156,5 +157,5 @@ def test_the_cpu_entry_point_trains_with_two_processes(tmp_path):
     assert "2 processes here, 2 in all" in result.stdout
     (run,) = list((tmp_path / "out").glob("*/seathru-nerf-lite/cli"))
     assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000002.ckpt"]
-    state = torch.load(run / "nerfstudio_models" / "step-000000002.ckpt", map_location="cpu")
+    state = load_checkpoint(run / "nerfstudio_models" / "step-000000002.ckpt")
     assert any(k.startswith("_model.module.medium_field") for k in state["pipeline"])  # saved from the DDP wrapper

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 import torch
 
-import seathru_nerfstudio.config  # noqa: F401  (allow-lists nerfstudio checkpoints for torch.load, as ns-train does)
+from seathru_nerfstudio.compat import load_checkpoint
 
 from tiny_training import BIN, TINY_MODEL_ARGS, make_scene
 
@@ -35,7 +35,7 @@ def trained_state(scene: Path, out: Path, name: str, seed: int) -> dict:
     result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=900)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     (checkpoint,) = (out / "repeat" / "seathru-nerf-lite" / name / "nerfstudio_models").glob("step-*.ckpt")
-    return torch.load(checkpoint, map_location="cpu")["pipeline"]
+    return load_checkpoint(checkpoint)["pipeline"]
 
 
 @pytest.fixture(scope="module")

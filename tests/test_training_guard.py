@@ -14,6 +14,7 @@ import torch
 
 from tiny_training import make_scene, tiny_config
 
+from seathru_nerfstudio.compat import load_checkpoint
 from seathru_nerfstudio.training import GuardedGradScaler, NonFiniteTrainingError, SeathruTrainer
 
 pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
@@ -91,7 +92,7 @@ def test_a_single_nan_step_is_skipped_with_one_warning_and_training_goes_on(scen
     assert any(not torch.equal(v, params[bad + 1][k]) for k, v in params[bad + 2].items())
 
     (ckpt,) = checkpoints(trainer)
-    state = torch.load(ckpt, map_location="cpu")
+    state = load_checkpoint(ckpt)
     assert state["step"] == iterations - 1
     assert_all_finite(state["pipeline"], "pipeline")
     assert_all_finite(state["optimizers"], "optimizers")
@@ -115,7 +116,7 @@ def test_repeated_nans_stop_training_and_the_last_good_checkpoint_loads_and_rend
     assert trainer.guard.skipped_steps == [6, 7, 8]
     assert capsys.readouterr().out.count("optimiser step skipped") == 3
 
-    state = torch.load(ckpt, map_location="cpu")
+    state = load_checkpoint(ckpt)
     assert_all_finite(state, "checkpoint")
 
     resumed = make_trainer(scene, tmp_path / "resumed", 6, load_dir=ckpt.parent)

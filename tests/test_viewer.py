@@ -27,6 +27,8 @@ import torch
 import tiny_checkpoint
 import viewer_page
 
+from seathru_nerfstudio.compat import load_checkpoint
+
 CONTROL_LABELS = ("Water", "Water density", "Override veiling light", "Veiling light", "Exposure (stops)", "sRGB display")
 LISTED_OUTPUTS = (
     "rgb_display", "clean_display", "direct_display", "backscatter_display", "water_split",
@@ -132,7 +134,7 @@ def test_controls_are_viewer_elements_in_their_folder_and_hold_no_state(pipeline
 
     # Nothing of the viewer is in the state dict: the checkpoint has exactly the same keys.
     (ckpt_path,) = list((tiny_run["config"].parent / "nerfstudio_models").glob("*.ckpt"))
-    saved = torch.load(ckpt_path, map_location="cpu")["pipeline"]
+    saved = load_checkpoint(ckpt_path)["pipeline"]
     assert set(saved) == set(pipeline.state_dict())
     assert not [k for k in saved if "viewer" in k or k.startswith("seathru.")]
 
