@@ -21,15 +21,18 @@ def _scene(num: int, sigma: float, veil, dark_fraction: float, seed: int = 0):
 
 @pytest.mark.parametrize("true_sigma", [0.2, 1.0, 3.0])
 def test_fitting_the_envelope_recovers_the_backscatter_density(true_sigma):
+    """Per channel, the loss's minimiser over densities from 0.01 to 10 (steps of 0.6%) is within
+    5% of the truth, and its gradient points towards the truth from 30% above and below it."""
     image, r, veil = _scene(4000, true_sigma, [0.07, 0.2, 0.39], dark_fraction=0.05)
-    raw = torch.zeros(3, requires_grad=True)  # softplus(0) = 0.69, far from every truth here
-    opt = torch.optim.Adam([raw], lr=0.05)
-    for _ in range(1500):
-        loss = backscatter_envelope_loss(image, r, veil, torch.nn.functional.softplus(raw).expand(4000, 3), 0.01)
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-    torch.testing.assert_close(torch.nn.functional.softplus(raw).detach(), torch.full((3,), true_sigma), rtol=0.05, atol=0)
+    grid = torch.logspace(-2, 1, 1201)
+    for c in range(3):
+        channel = image[:, c : c + 1], r, veil[:, c : c + 1]
+        losses = torch.stack([backscatter_envelope_loss(*channel, torch.full((4000, 1), float(s)), 0.01) for s in grid])
+        torch.testing.assert_close(grid[losses.argmin()], torch.tensor(true_sigma), rtol=0.05, atol=0)
+        for factor, sign in ((1.3, 1.0), (1 / 1.3, -1.0)):
+            sigma = torch.full((4000, 1), true_sigma * factor, requires_grad=True)
+            backscatter_envelope_loss(*channel, sigma, 0.01).backward()
+            assert sign * float(sigma.grad.sum()) > 0, (c, factor)
 
 
 def test_the_minimiser_leaves_the_quantile_below():
