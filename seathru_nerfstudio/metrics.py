@@ -6,6 +6,7 @@ with :func:`view_metrics`. LPIPS only when its weights are already on disk.
 from __future__ import annotations
 
 import importlib
+import math
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
@@ -105,6 +106,37 @@ def far_third_mask(target: Float[Tensor, "*batch 1"]) -> Tensor:
     return valid & (target >= threshold)
 
 
+def near_third_mask(target: Float[Tensor, "*batch 1"]) -> Tensor:
+    """Object pixels (finite ground-truth range) in the nearest third by rank: of the ``n`` object
+    pixels, the ``ceil(n / 3)`` with the smallest range (ties broken by pixel order), so the mask
+    holds exactly that many; open water (``inf``) never. Nearest, because there the clean colour
+    is least hidden by the water, so its error shows the decomposition rather than the noise."""
+    valid = torch.isfinite(target)
+    mask = torch.zeros_like(valid)
+    index = torch.nonzero(valid.reshape(-1)).squeeze(1)
+    if index.numel() == 0:
+        return mask
+    order = torch.argsort(target.reshape(-1)[index].float(), stable=True)
+    mask.view(-1)[index[order[: math.ceil(index.numel() / 3)]]] = True
+    return mask
+
+
+def clean_psnrs(
+    clean: Float[Tensor, "H W 3"], gt_clean: Float[Tensor, "H W 3"], gt_depth: Float[Tensor, "H W 1"]
+) -> Dict[str, float]:
+    """J (clean image) PSNR, the estimate clipped to [0, 1] as every image is scored:
+    ``clean_psnr_objects`` over the object pixels (finite true range) and
+    ``clean_psnr_near_third`` over the nearest third of them (:func:`near_third_mask`);
+    ``nan`` where a view has no object pixel. Any range unit (the mask is by rank)."""
+    clean = clean[..., :3].float().clamp(0.0, 1.0)
+    gt_clean = gt_clean[..., :3].float()
+    result = {}
+    for key, mask in (("clean_psnr_objects", torch.isfinite(gt_depth)), ("clean_psnr_near_third", near_third_mask(gt_depth))):
+        pixels = mask.expand_as(clean)
+        result[key] = psnr(clean[pixels], gt_clean[pixels]) if bool(mask.any()) else float("nan")
+    return result
+
+
 def view_metrics(
     outputs: Mapping[str, Tensor],
     gt_rgb: Float[Tensor, "H W 3"],
@@ -126,7 +158,8 @@ def view_metrics(
       median of ``log(depth / true)``: < 0 when surfaces sit too near), and the mean object
       opacity on object rays (``object_accumulation``) and on open water (``open_water_accumulation``, which must stay 0);
     * with ``gt_clean`` and a ``clean`` output: ``clean_psnr``, ``clean_ssim``, on object pixels only
-      when ``gt_depth`` says where open water is (it has no clean colour);
+      when ``gt_depth`` says where open water is (it has no clean colour); then also
+      :func:`clean_psnrs`: ``clean_psnr_objects`` (the same as ``clean_psnr``) and ``clean_psnr_near_third``;
     * ``mean_backscatter`` when there is a ``backscatter`` output.
 
     Abs-rel errors are ratios, so they do not depend on the depth unit.
@@ -169,6 +202,7 @@ def view_metrics(
             objects = object_mask.expand_as(clean)
             result["clean_psnr"] = psnr(clean[objects], gt_clean[objects])
             result["clean_ssim"] = ssim(torch.where(objects, clean, gt_clean), gt_clean)
+            result.update(clean_psnrs(clean, gt_clean, gt_depth))
         else:
             result["clean_psnr"] = psnr(clean, gt_clean)
             result["clean_ssim"] = ssim(clean, gt_clean)

@@ -133,8 +133,8 @@ def test_view_metrics_scores_nerfacto_rgb_as_its_clean_image_and_objects_only():
 
 def test_clean_psnr_on_object_pixels_and_their_nearest_third():
     """Rows 0-2 open water, rows 3-8 objects at a range equal to the row: the nearest third of the
-    24 object pixels is rows 3-4, off by 0.1; the far rows are off by 0.2; open water by 0.5."""
-    h, w = 9, 4
+    72 object pixels is rows 3-4, off by 0.1; the far rows are off by 0.2; open water by 0.5."""
+    h, w = 9, 12  # SSIM's 11-pixel window needs 6 pixels a side
     depth = torch.arange(h, dtype=torch.float32)[:, None, None].expand(h, w, 1).clone()
     depth[:3] = float("inf")
     gt_clean = torch.full((h, w, 3), 0.5)
@@ -143,7 +143,7 @@ def test_clean_psnr_on_object_pixels_and_their_nearest_third():
     batch = {"image": gt_clean, "gt_clean": gt_clean, "gt_depth": depth}
     m = scoring.view_metrics({"rgb": gt_clean, "clean": gt_clean + error, "depth": depth.clamp_max(9)}, batch)
     assert m["clean_psnr_near_third"] == pytest.approx(20.0, abs=1e-4)
-    assert m["clean_psnr_objects"] == pytest.approx(-10 * math.log10((8 * 0.1**2 + 16 * 0.2**2) / 24), abs=1e-4)
+    assert m["clean_psnr_objects"] == pytest.approx(-10 * math.log10((24 * 0.1**2 + 48 * 0.2**2) / 72), abs=1e-4)
     scaled = scoring.view_metrics({"rgb": gt_clean, "clean": gt_clean + error, "depth": depth}, {**batch, "gt_depth": depth * 7})
     assert scaled["clean_psnr_near_third"] == m["clean_psnr_near_third"]  # by rank: any range unit
 

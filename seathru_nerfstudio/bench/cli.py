@@ -1,6 +1,6 @@
 """``seathru-bench``: ``run`` (methods x scenes), ``numerics`` (renderer quadratures),
 ``report`` (table and plots again from a results.json), ``render-cost`` (a camera render's
-cost by the outputs read)."""
+cost by the outputs read), ``ceiling`` (a scene's ceiling, without training)."""
 
 from __future__ import annotations
 
@@ -30,6 +30,33 @@ class ReportConfig:
     merged results.json is written there too."""
 
 
+@dataclass
+class CeilingConfig:
+    """Print the ceiling of a scene with ground truth, without training (seconds): the formation
+    model inverted with the true range and the best-fitting medium, scored on the held-out views."""
+
+    scene: Path
+    """A scene folder with transforms.json whose frames declare gt_clean_file_path and
+    gt_depth_file_path, and ground_truth/medium.json (seathru-synth writes both)."""
+    output: Optional[Path] = None
+    """Also write the ceiling record (JSON) to this file."""
+
+
+def run_ceiling(config: CeilingConfig) -> None:
+    import json
+
+    from seathru_nerfstudio.bench.ceiling_scene import scene_ceiling
+    from seathru_nerfstudio.bench.report import ceiling_table
+
+    if not (config.scene / "transforms.json").is_file():
+        raise ValueError(f"{config.scene}: no transforms.json (not a nerfstudio scene folder)")
+    record = scene_ceiling(config.scene)
+    print(ceiling_table(record), end="")
+    if config.output is not None:
+        write_text_atomic(config.output, json.dumps(record, indent=1, default=float))
+        CONSOLE.print(f"seathru-bench: wrote {config.output}")
+
+
 def entrypoint() -> None:
     from seathru_nerfstudio.bench.numerics import NumericsConfig
     from seathru_nerfstudio.bench.render_cost import RenderCostConfig
@@ -41,8 +68,16 @@ def entrypoint() -> None:
             Annotated[NumericsConfig, tyro.conf.subcommand("numerics", default=NumericsConfig())],
             Annotated[ReportConfig, tyro.conf.subcommand("report", default=ReportConfig())],
             Annotated[RenderCostConfig, tyro.conf.subcommand("render-cost", default=RenderCostConfig())],
+            Annotated[CeilingConfig, tyro.conf.subcommand("ceiling")],
         ]
     )
+    if isinstance(command, CeilingConfig):
+        try:
+            run_ceiling(command)
+        except ValueError as error:  # no or unreadable ground truth: one line naming the file
+            CONSOLE.print(f"[bold red]Error: seathru-bench ceiling: {error}", markup=True, highlight=False)
+            sys.exit(1)
+        return
     if isinstance(command, RunConfig):
         from seathru_nerfstudio.bench.methods import MethodSpecError
         from seathru_nerfstudio.bench.runner import run_benchmark

@@ -1,4 +1,5 @@
-"""Markdown table and plots of a ``results.json`` (``seathru-bench run`` / ``report``)."""
+"""Markdown table and plots of a ``results.json`` (``seathru-bench run`` / ``report``), each
+scene's ceiling (:mod:`seathru_nerfstudio.bench.ceiling_scene`) beside its runs."""
 
 from __future__ import annotations
 
@@ -6,24 +7,34 @@ import math
 from pathlib import Path
 from typing import Any, Dict, List, Optional, Tuple
 
+from seathru_nerfstudio.bench import scoring
+
 # (key in an eval record, column title, better: "high"/"low", format)
 IMAGE_COLUMNS: List[Tuple[str, str, str, str]] = [
     ("psnr", "PSNR", "high", "{:.2f}"),
     ("ssim", "SSIM", "high", "{:.3f}"),
     ("lpips", "LPIPS", "low", "{:.3f}"),
-    ("clean_psnr", "clean PSNR", "high", "{:.2f}"),
+    ("clean_psnr_objects", "J PSNR objects", "high", "{:.2f}"),
+    ("clean_psnr_near_third", "J PSNR near third", "high", "{:.2f}"),
     ("clean_ssim", "clean SSIM", "high", "{:.3f}"),
-    ("depth_abs_rel", "depth abs-rel", "low", "{:.3f}"),
+    ("depth_abs_rel_median", "depth abs-rel median", "low", "{:.3f}"),
+    ("depth_abs_rel", "depth abs-rel mean", "low", "{:.3f}"),
     ("depth_abs_rel_far", "far-third abs-rel", "low", "{:.3f}"),
     ("mean_backscatter", "mean backscatter", "low", "{:.4f}"),
 ]
 MEDIUM_COLUMNS = [("beta_D", "β_D err"), ("beta_B", "β_B err"), ("B_inf", "B∞ err")]
+ALIASES = {"clean_psnr_objects": "clean_psnr"}
+"""A metric's name in results.json files written before it had this one (``clean_psnr`` was
+already over the object pixels where the scene had a true range)."""
+CEILING_SCORES = ("clean_psnr_objects", "clean_psnr_near_third")
 
 PLOTTED: List[Tuple[str, str, bool]] = [
     ("psnr", "in-medium PSNR (dB) ↑", False),
-    ("clean_psnr", "clean PSNR (dB) ↑", False),
+    ("clean_psnr_objects", "J PSNR, object pixels (dB) ↑", False),
+    ("clean_psnr_near_third", "J PSNR, nearest third (dB) ↑", False),
     ("ssim", "SSIM ↑", False),
-    ("depth_abs_rel", "depth abs-rel ↓", True),
+    ("depth_abs_rel_median", "depth abs-rel median ↓", True),
+    ("depth_abs_rel", "depth abs-rel mean ↓", True),
     ("depth_abs_rel_far", "far-third depth abs-rel ↓", True),
     ("medium:beta_D", "β_D mean rel. error ↓", True),
     ("medium:beta_B", "β_B mean rel. error ↓", True),
@@ -32,15 +43,25 @@ PLOTTED: List[Tuple[str, str, bool]] = [
 ]
 
 
+def _metric(metrics: Dict[str, Any], key: str) -> Optional[float]:
+    value = metrics.get(key, metrics.get(ALIASES.get(key, key)))
+    return None if value is None else float(value)
+
+
+def _medium_errors(record: Dict[str, Any]) -> Dict[str, Any]:
+    """Against the scene's ceiling reference where there is one, else against the truth."""
+    return record.get("medium_error_reference") or record.get("medium_error") or {}
+
+
 def _value(record: Dict[str, Any], key: str) -> float:
     if key.startswith("medium:"):
-        err = record.get("medium_error", {}).get(key.split(":", 1)[1])
+        err = _medium_errors(record).get(key.split(":", 1)[1])
         if not err:
             return float("nan")
         value = err["rel_mean"]
         return float(value) if value is not None else float("nan")
-    value = record.get("metrics", {}).get(key)
-    return float("nan") if value is None else float(value)
+    value = _metric(record.get("metrics", {}), key)
+    return float("nan") if value is None else value
 
 
 def _fmt(value: Optional[float], fmt: str) -> str:
@@ -51,17 +72,90 @@ def _fmt(value: Optional[float], fmt: str) -> str:
     return fmt.format(value)
 
 
+def _values(values) -> str:
+    return "(" + ", ".join(f"{v:.3g}" for v in values) + ")"
+
+
 def _medium_cell(record: Dict[str, Any], key: str) -> str:
-    err = (record.get("medium_error") or {}).get(key)
+    err = _medium_errors(record).get(key)
     if err is None:
         medium = record.get("medium")
         if medium is None:
             return "n/a"
-        return "(" + ", ".join(f"{v:.3g}" for v in medium[key]) + ")"
+        return _values(medium[key])
     rel = err["rel"]
     if all(isinstance(r, float) and math.isnan(r) for r in rel):  # truth is 0: absolute values
-        return "pred (" + ", ".join(f"{v:.3g}" for v in err["pred"]) + ")"
+        return "pred " + _values(err["pred"])
     return f"{100 * err['rel_mean']:.0f}% (" + ", ".join(f"{100 * r:.0f}" for r in rel) + ")"
+
+
+def ceiling_rows(record: Dict[str, Any], before: int) -> List[List[str]]:
+    """A scene's ceiling variants as rows of the results table: ``before`` empty cells (the
+    run's cost), then the J scores; the medium cells give the fixed β_D (the truth) and the
+    fitted values, and for the variant that fits β_D too, its errors against the reference."""
+    rows = []
+    for key, variant in record.get("variants", {}).items():
+        row = [record["scene"], f"**{variant['label']}**"] + ["–"] * before
+        row += [
+            _fmt(_metric(variant["metrics"], k), fmt) if k in CEILING_SCORES else "–" for k, _, _, fmt in IMAGE_COLUMNS
+        ]
+        if key == "ceiling":
+            medium = variant["medium"]
+            row += ["true " + _values(medium["beta_D"]), "fit " + _values(medium["beta_B"]), "fit " + _values(medium["B_inf"])]
+        else:
+            row += [_medium_cell(variant, k) for k, _ in MEDIUM_COLUMNS]
+        rows.append(row)
+    return rows
+
+
+def ceiling_table(record: Dict[str, Any]) -> str:
+    """One scene's ceiling as markdown (``seathru-bench ceiling``): J scores per variant, the
+    fitted medium, its error against the truth (``ground_truth/medium.json``), the fit residual."""
+    lines = [
+        f"Ceiling of {record['scene']} ({record['scene_path']}): medium fitted on {len(record['fit_views'])} "
+        f"{record['fit_split']} views ({record['fit']['num_pixels']} object pixels), J scored on "
+        f"{len(record['held_out_views'])} held-out views.",
+        "",
+        "| variant | J PSNR objects | J PSNR near third | β_D | β_B | B∞ | fit rms | capped gains |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for variant in record["variants"].values():
+        m, medium = variant["metrics"], variant["medium"]
+        lines.append(
+            f"| {variant['label']} | {_fmt(_metric(m, 'clean_psnr_objects'), '{:.2f}')} | "
+            f"{_fmt(_metric(m, 'clean_psnr_near_third'), '{:.2f}')} | {_values(medium['beta_D'])} | "
+            f"{_values(medium['beta_B'])} | {_values(medium['B_inf'])} | {_values(medium['rms'])} | {variant['capped_gains']} |"
+        )
+    truth = record["truth"]
+    lines.append(f"| truth (medium.json) | | | {_values(truth['beta_D'])} | {_values(truth['beta_B'])} | {_values(truth['B_inf'])} | | |")
+    error = record["fit_vs_truth"]
+    lines += [
+        "",
+        "Best fit against the truth: β_B " + _medium_cell({"medium_error": error}, "beta_B")
+        + ", B∞ " + _medium_cell({"medium_error": error}, "B_inf")
+        + "; fitting β_D too: β_D " + _medium_cell({"medium_error": scoring.medium_error(record["fit_all"], truth)}, "beta_D") + ".",
+        "",
+        record["note"],
+    ]
+    return "\n".join(lines) + "\n"
+
+
+def ceiling_gaps(results: Dict[str, Any]) -> List[str]:
+    """Each run's final J scores minus its scene's ceiling (dB; ≤ 0 unless a method beats the
+    model's inversion), as markdown lines."""
+    ceilings = results.get("ceilings") or {}
+    lines = ["| scene | method | J objects − ceiling | J near third − ceiling |", "|---|---|---|---|"]
+    for run in results.get("runs", []):
+        record = ceilings.get(run["scene"])
+        if not record or not run.get("evals"):
+            continue
+        final, top = run["evals"][-1].get("metrics", {}), record["variants"]["ceiling"]["metrics"]
+        gaps = []
+        for key in CEILING_SCORES:
+            ours, best = _metric(final, key), _metric(top, key)
+            gaps.append(_fmt(None if ours is None or best is None else ours - best, "{:+.2f}"))
+        lines.append(f"| {run['scene']} | `{run['method']}` | {gaps[0]} | {gaps[1]} |")
+    return lines if len(lines) > 2 else []
 
 
 def markdown_table(results: Dict[str, Any]) -> str:
@@ -76,12 +170,18 @@ def markdown_table(results: Dict[str, Any]) -> str:
         f"{machine.get('loadavg_end', [float('nan')])[0]:.1f} at end.",
         "",
     ]
+    scoring.reference_errors(results)
     head = ["scene", "method", "iters", "train s", "s/iter", "CPU s/iter", "peak RSS MB"]
     head += [title for _, title, _, _ in IMAGE_COLUMNS]
     head += [title for _, title in MEDIUM_COLUMNS]
     lines.append("| " + " | ".join(head) + " |")
     lines.append("|" + "---|" * len(head))
+    ceilings = results.get("ceilings") or {}
+    shown = set()
     for run in results.get("runs", []):
+        if run["scene"] in ceilings and run["scene"] not in shown:
+            lines += ["| " + " | ".join(row) + " |" for row in ceiling_rows(ceilings[run["scene"]], 5)]
+        shown.add(run["scene"])
         final = run["evals"][-1] if run.get("evals") else {}
         row = [
             run["scene"],
@@ -92,13 +192,18 @@ def markdown_table(results: Dict[str, Any]) -> str:
             _fmt(run.get("cpu_sec_per_iter"), "{:.2f}"),
             f"{run['peak_rss_mb']:.0f}",
         ]
-        row += [_fmt(final.get("metrics", {}).get(key), fmt) for key, _, _, fmt in IMAGE_COLUMNS]
+        row += [_fmt(_metric(final.get("metrics", {}), key), fmt) for key, _, _, fmt in IMAGE_COLUMNS]
         row += [_medium_cell(final, key) for key, _ in MEDIUM_COLUMNS]
         lines.append("| " + " | ".join(row) + " |")
     lines += [
         "",
         "Medium errors: mean relative error over RGB (per channel in brackets, %) of the median "
-        "over held-out rays, densities converted to 1/m; where the truth is 0, the predicted values.",
+        "over held-out rays, densities converted to 1/m; where the truth is 0, the predicted values. "
+        "β_D is compared with the truth; β_B and B∞ with the scene's ceiling fit where it has one "
+        "(the best-fitting values of the formation model), else with the truth. J PSNR: the clean "
+        "image over the object pixels (finite true range) and over their nearest third (per view); "
+        "depth abs-rel: per view median and mean over the object pixels, averaged over views. "
+        "Ceiling rows: the formation model inverted with the true range (Ĵ clipped to [0, 1] for the PSNR only).",
         "",
         "### Curves (every evaluation)",
         "",
@@ -111,6 +216,9 @@ def markdown_table(results: Dict[str, Any]) -> str:
             row = [run["scene"], f"`{run['method']}`", str(record["step"]), f"{record['train_time']:.0f}"]
             row += [_fmt(_value(record, key), "{:.3f}") for key, _, _ in PLOTTED]
             lines.append("| " + " | ".join(row) + " |")
+    gaps = ceiling_gaps(results)
+    if gaps:
+        lines += ["", "### Gaps to the ceiling (final evaluation)", ""] + gaps
     codes = [run.get("code") for run in results.get("runs", [])]
     if codes and all(codes):
         dirty = sorted({f for code in codes for f in code.get("dirty_files", [])})
@@ -145,6 +253,9 @@ def plot_scene(results: Dict[str, Any], scene: str, path: Path) -> Path:
             if not pts:
                 continue
             ax.plot([p[0] for p in pts], [p[1] for p in pts], marker="o", label=run["method"])
+        ceiling = ((results.get("ceilings") or {}).get(scene) or {}).get("variants", {}).get("ceiling")
+        if ceiling and key in CEILING_SCORES and _metric(ceiling["metrics"], key) is not None:
+            ax.axhline(_metric(ceiling["metrics"], key), color="black", linestyle="--", linewidth=1, label="ceiling")
         ax.set_title(title, fontsize=10)
         ax.set_xscale("log")
         ticks = []
@@ -177,6 +288,7 @@ def merge_results(parts: List[Dict[str, Any]]) -> Dict[str, Any]:
     merged = dict(parts[0])
     merged["runs"] = [run for part in parts for run in part.get("runs", [])]
     merged["failures"] = [f for part in parts for f in part.get("failures", [])]
+    merged["ceilings"] = {k: v for part in parts for k, v in (part.get("ceilings") or {}).items()}
     merged["parts"] = [
         {k: part.get(k) for k in ("created", "command", "budget_kind", "budget", "machine")} for part in parts
     ]

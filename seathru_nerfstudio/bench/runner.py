@@ -142,12 +142,34 @@ def _launch(spec: Dict[str, Any], spec_path: Path, log_path: Path) -> subprocess
         )
 
 
+def scene_ceilings(scenes: List[Tuple[str, Path]]) -> Dict[str, Any]:
+    """The ceiling of each scene with ground truth (:func:`ceiling_scene.scene_ceiling`, seconds
+    each), before any training, so that unreadable ground truth stops the benchmark early."""
+    from seathru_nerfstudio.bench.ceiling_scene import NoGroundTruth, scene_ceiling
+
+    ceilings: Dict[str, Any] = {}
+    for name, folder in scenes:
+        try:
+            ceilings[name] = scene_ceiling(folder, name)
+        except NoGroundTruth:
+            continue
+        except ValueError as error:
+            raise SystemExit(f"seathru-bench: the ceiling of {name}: {error}") from error
+        top = ceilings[name]["variants"]["ceiling"]["metrics"]
+        CONSOLE.print(
+            f"ceiling of {name}: J PSNR {top['clean_psnr_objects']:.2f} dB over object pixels, "
+            f"{top['clean_psnr_near_third']:.2f} dB on the nearest third"
+        )
+    return ceilings
+
+
 def run_benchmark(config: RunConfig) -> Dict[str, Any]:
     for method in config.methods:  # fail fast on a bad method or override, before writing anything
         build_config(method)
     out = config.output_dir
     out.mkdir(parents=True, exist_ok=True)
     scenes = [resolve_scene(s, config) for s in config.scenes]
+    ceilings = scene_ceilings(scenes)
     if config.budget_iterations is not None:
         kind, budget = "iterations", float(config.budget_iterations)
         eval_at = sorted({round(x) for x in scoring.log_spaced(budget, config.num_evals, config.first_eval_fraction)})
@@ -256,7 +278,9 @@ def run_benchmark(config: RunConfig) -> Dict[str, Any]:
         "methods": list(config.methods),
         "failures": failures,
         "runs": runs,
+        "ceilings": ceilings,
     }
+    scoring.reference_errors(results)
     write_text_atomic(out / "results.json", json.dumps(results, indent=1, default=float))
     CONSOLE.print(f"seathru-bench: wrote {out / 'results.json'}")
     from seathru_nerfstudio.bench import report  # imported late: plotting is only needed here

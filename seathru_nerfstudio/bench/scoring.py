@@ -65,6 +65,19 @@ def medium_error(
     return out
 
 
+def reference_errors(results: Dict[str, object]) -> None:
+    """Give every evaluation with a medium its error against its scene's ceiling reference
+    (``medium_error_reference``: β_D against the truth, β_B and B∞ against the ceiling's best
+    fit; :mod:`seathru_nerfstudio.bench.ceiling_scene`), where ``results["ceilings"]`` has one.
+    In place; doing it again changes nothing."""
+    ceilings = results.get("ceilings") or {}
+    for run in results.get("runs", []):  # type: ignore[union-attr]
+        reference = (ceilings.get(run["scene"]) or {}).get("reference")  # type: ignore[union-attr]
+        for record in run.get("evals", []) if reference else []:
+            if record.get("medium") is not None:
+                record["medium_error_reference"] = medium_error(record["medium"], reference)
+
+
 def view_metrics(
     outputs: Mapping[str, Tensor], batch: Mapping[str, Tensor], lpips: Optional[Callable] = None
 ) -> Dict[str, float]:
