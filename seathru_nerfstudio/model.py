@@ -27,7 +27,7 @@ from nerfstudio.models.nerfacto import NerfactoModel
 from nerfstudio.utils import colormaps
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio import diagnostics, metrics, viewer
+from seathru_nerfstudio import diagnostics, export, metrics, viewer
 from seathru_nerfstudio.camera_rendering import MEDIUM_OUTPUTS, WATER_OUTPUTS, lazy_camera_outputs
 from seathru_nerfstudio.losses import (
     backscatter_envelope_loss,
@@ -320,6 +320,11 @@ class SeathruModel(NerfactoModel):
         if self.training:
             return super().get_outputs_for_camera_ray_bundle(camera_ray_bundle)
         return lazy_camera_outputs(self, camera_ray_bundle)
+
+    def get_rgba_image(self, outputs: Dict[str, torch.Tensor], output_name: str = "rgb") -> torch.Tensor:
+        """nerfstudio's exporters (``ns-export``): the clean colour with the viewer's display transform,
+        and the object opacity as alpha (:func:`~seathru_nerfstudio.export.get_rgba_image`)."""
+        return export.get_rgba_image(self, outputs, output_name)
 
     def get_metrics_dict(self, outputs, batch) -> Dict[str, torch.Tensor]:
         metrics_dict = super().get_metrics_dict(outputs, batch)
