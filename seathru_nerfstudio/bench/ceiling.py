@@ -134,11 +134,15 @@ def fit_backscatter(I: Array, J: Array, z: Array, beta_D: Array) -> MediumFit:
 
 def fit_medium(I: Array, J: Array, z: Array, start: MediumFit) -> MediumFit:
     """β_D, β_B and B∞ of (1), all three by least squares over the object pixels, per channel,
-    from ``start`` (e.g. :func:`fit_backscatter` at the true β_D); all three bounded below by 0.
+    from ``start`` (e.g. :func:`fit_backscatter` at the true β_D); β_D and B∞ bounded below by 0,
+    β_B searched where :func:`fit_backscatter` searches it (``truth.BETA_B_RANGE``: beyond, the
+    backscatter is saturated at every range and β_B no longer changes the image).
 
     Residual ``J e^{-β_D z} + B∞ (1 − e^{-β_B z}) − I`` with the Jacobian
     ``(−z J e^{-β_D z}, B∞ z e^{-β_B z}, 1 − e^{-β_B z})``; scipy's trust-region reflective solver.
     """
+    from seathru_nerfstudio.data.pathtrace.truth import BETA_B_RANGE
+
     I, J, z = _flatten(I, J, z)
     out = []
     for c in range(3):
@@ -151,9 +155,10 @@ def fit_medium(I: Array, J: Array, z: Array, start: MediumFit) -> MediumFit:
             return np.stack([-z * Jc * np.exp(-p[0] * z), p[2] * z * np.exp(-p[1] * z), -np.expm1(-p[1] * z)], axis=1)
 
         x0 = np.array([start.beta_D[c], start.beta_B[c], start.B_inf[c]], dtype=np.float64)
-        x0[:2] = np.maximum(x0[:2], 0.0)
+        lower, upper = np.array([0.0, BETA_B_RANGE[0], 0.0]), np.array([np.inf, BETA_B_RANGE[1], np.inf])
+        x0 = np.clip(x0, lower, upper)
         result = least_squares(
-            residual, x0, jac=jacobian, bounds=([0.0, 0.0, 0.0], [np.inf, np.inf, np.inf]),
+            residual, x0, jac=jacobian, bounds=(lower, upper),
             method="trf", x_scale="jac", ftol=1e-14, xtol=1e-14, gtol=1e-14, max_nfev=500,
         )  # fmt: skip
         res = residual(result.x)
