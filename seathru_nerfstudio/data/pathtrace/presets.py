@@ -6,7 +6,10 @@ is y-up; the seabed (or ground) lies around ``y = 0``; cameras look roughly alon
 
 Water's beam attenuation ``c = sigma_t`` (absorption + scattering) and single-scattering
 albedo ``omega = sigma_s / sigma_t`` are per RGB channel; scattering uses a Henyey-Greenstein
-phase function with mean cosine ``g`` (natural waters: 0.8-0.95). The ``coastal`` values are
+phase function with mean cosine ``g`` (natural waters: 0.8-0.95; the lower end here, because
+the sun's forward-scattered aureole is the path tracer's main source of noise, which grows as
+``(1 + g) / (1 - g)^2``: a sun weaker than the sky (1.5 against about 3.5 on a level surface)
+for the same reason). The ``coastal`` values are
 those of a blue-green coastal water (c = 0.30, 0.17, 0.12 /m, red absorbed most); ``turbid``
 is a green, particle-laden water (blue absorbed by dissolved organic matter, green least
 attenuated); ``fog`` is a grey, mostly scattering layer of finite height over the ground;
@@ -49,6 +52,8 @@ class Preset:
     sun_azimuth_deg: float
     sun_irradiance: RGB
     """Irradiance of the sun on a surface facing it, above the medium."""
+    sun_radius_deg: float
+    """Angular radius of the sun's disc in the sky map; 0: a directional (point) sun."""
     sky_zenith: RGB
     sky_horizon: RGB
     """Sky radiance straight up and at the horizon (linear ramp in sin(elevation) between)."""
@@ -61,23 +66,23 @@ class Preset:
         return asdict(self)
 
 
-_SUN = dict(sun_elevation_deg=60.0, sun_azimuth_deg=30.0)
+_SUN = dict(sun_elevation_deg=60.0, sun_azimuth_deg=30.0, sun_radius_deg=0.0)
 
 PRESETS: Dict[str, Preset] = {
     "coastal": Preset(
-        name="coastal", medium="water", sigma_t=(0.30, 0.17, 0.12), albedo=(0.60, 0.75, 0.80), g=0.85,
-        layer_top=8.0, camera_height=1.6, scene_scale=1.0, sun_irradiance=(3.0, 3.0, 2.9),
-        sky_zenith=(0.35, 0.55, 0.95), sky_horizon=(0.75, 0.85, 1.0), exposure=1.0, drop_off=True, **_SUN,
+        name="coastal", medium="water", sigma_t=(0.30, 0.17, 0.12), albedo=(0.60, 0.75, 0.80), g=0.80,
+        layer_top=8.0, camera_height=1.6, scene_scale=1.0, sun_irradiance=(1.5, 1.5, 1.45),
+        sky_zenith=(0.52, 0.82, 1.42), sky_horizon=(1.12, 1.28, 1.5), exposure=1.0, drop_off=True, **_SUN,
     ),
     "turbid": Preset(
-        name="turbid", medium="water", sigma_t=(0.55, 0.35, 0.50), albedo=(0.65, 0.85, 0.70), g=0.90,
-        layer_top=6.0, camera_height=1.3, scene_scale=0.6, sun_irradiance=(3.0, 3.0, 2.9),
-        sky_zenith=(0.35, 0.55, 0.95), sky_horizon=(0.75, 0.85, 1.0), exposure=1.5, drop_off=True, **_SUN,
+        name="turbid", medium="water", sigma_t=(0.55, 0.35, 0.50), albedo=(0.65, 0.85, 0.70), g=0.85,
+        layer_top=6.0, camera_height=1.3, scene_scale=0.6, sun_irradiance=(1.5, 1.5, 1.45),
+        sky_zenith=(0.52, 0.82, 1.42), sky_horizon=(1.12, 1.28, 1.5), exposure=1.5, drop_off=True, **_SUN,
     ),
     "fog": Preset(
         name="fog", medium="fog", sigma_t=(0.12, 0.12, 0.12), albedo=(0.90, 0.90, 0.90), g=0.80,
-        layer_top=8.0, camera_height=1.8, scene_scale=1.0, sun_irradiance=(2.2, 2.1, 2.0),
-        sky_zenith=(0.30, 0.45, 0.80), sky_horizon=(0.65, 0.72, 0.85), exposure=0.6, drop_off=False, **_SUN,
+        layer_top=8.0, camera_height=1.8, scene_scale=1.0, sun_irradiance=(1.5, 1.45, 1.4),
+        sky_zenith=(0.45, 0.68, 1.2), sky_horizon=(0.98, 1.08, 1.28), exposure=0.6, drop_off=False, **_SUN,
     ),
     "clear": Preset(
         name="clear", medium="none", sigma_t=(0.0, 0.0, 0.0), albedo=(0.0, 0.0, 0.0), g=0.0,

@@ -213,14 +213,26 @@ def write_meshes(mi: Any, layout: Layout, preset: Preset, folder: Path) -> Dict[
     return paths
 
 
-def sky_bitmap(preset: Preset, height: int = 64) -> npt.NDArray[np.float32]:
-    """(H, 2H, 3) lat-long sky radiance (Mitsuba's envmap: row 0 straight up): zenith to horizon
-    linear in sin(elevation); below the horizon a dim ground colour (hidden by the ground)."""
-    elevation = np.pi / 2 - np.pi * (np.arange(height) + 0.5) / height
-    w = np.clip(np.sin(elevation), 0.0, 1.0)[:, None]
+def sky_bitmap(preset: Preset, height: int = 128) -> npt.NDArray[np.float32]:
+    """(H, 2H, 3) lat-long sky radiance in Mitsuba's envmap layout (pixel (u, v) looks along
+    ``y = cos(pi v)``, ``x = sin(pi v) sin(2 pi u)``, ``z = -sin(pi v) cos(2 pi u)``): zenith to
+    horizon linear in sin(elevation), a dim ground colour below the horizon (hidden by the
+    ground); with ``preset.sun_radius_deg > 0`` the sun is a disc of that angular radius whose
+    radiance gives the irradiance ``preset.sun_irradiance`` (radiance = E / solid angle)."""
+    v = (np.arange(height) + 0.5) / height
+    u = (np.arange(2 * height) + 0.5) / (2 * height)
+    theta, phi = np.meshgrid(np.pi * v, 2 * np.pi * u, indexing="ij")
+    d = np.stack([np.sin(theta) * np.sin(phi), np.cos(theta), -np.sin(theta) * np.cos(phi)], -1)
+    w = np.clip(d[..., 1], 0.0, 1.0)[..., None]
     sky = (1 - w) * np.array(preset.sky_horizon) + w * np.array(preset.sky_zenith)
-    sky[elevation < 0] = 0.2 * np.array(preset.sky_horizon)
-    return np.repeat(sky[:, None, :], 2 * height, axis=1).astype(np.float32)
+    sky[d[..., 1] < 0] = 0.2 * np.array(preset.sky_horizon)
+    if preset.sun_radius_deg > 0:
+        radius = math.radians(preset.sun_radius_deg)
+        disc = d @ sun_direction(preset) >= math.cos(radius)
+        # the texels' own solid angle, so the map's discrete disc carries exactly the irradiance
+        texel = (np.pi / height) * (2 * np.pi / (2 * height)) * np.sin(theta)
+        sky[disc] += np.array(preset.sun_irradiance) / float(texel[disc].sum())
+    return sky.astype(np.float32)
 
 
 def sensor_to_world(c2w: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
@@ -260,13 +272,14 @@ def scene_dict(mi: Any, layout: Layout, preset: Preset, meshes: Dict[str, Path],
     ``medium`` is the loaded medium object (None for ``dry`` or without a medium); surfaces get it
     as their exterior, the box of the water body / fog layer as its interior."""
     in_medium = medium is not None and mode != "dry"
-    sun_dir = _sun_direction(preset)
+    sun_dir = sun_direction(preset)
     scene: Dict[str, Any] = {
         "type": "scene",
         "integrator": {"type": "volpathmis", "max_depth": max_depth},
         "sky": {"type": "envmap", "bitmap": mi.Bitmap(sky_bitmap(preset))},
-        "sun": {"type": "directional", "direction": list(-sun_dir), "irradiance": {"type": "rgb", "value": list(preset.sun_irradiance)}},
     }
+    if preset.sun_radius_deg <= 0:
+        scene["sun"] = {"type": "directional", "direction": list(-sun_dir), "irradiance": {"type": "rgb", "value": list(preset.sun_irradiance)}}
 
     def surface(texture: npt.NDArray[np.float32]) -> Dict[str, Any]:
         shape: Dict[str, Any] = {"bsdf": {"type": "diffuse", "reflectance": {"type": "bitmap", "bitmap": mi.Bitmap(texture), "wrap_mode": "repeat", "raw": True}}}
@@ -295,7 +308,7 @@ def scene_dict(mi: Any, layout: Layout, preset: Preset, meshes: Dict[str, Path],
     return scene
 
 
-def _sun_direction(preset: Preset) -> npt.NDArray[np.float64]:
+def sun_direction(preset: Preset) -> npt.NDArray[np.float64]:
     """Unit vector towards the sun (world): behind the rig (+z), so the faces seen are lit."""
     el, az = math.radians(preset.sun_elevation_deg), math.radians(preset.sun_azimuth_deg)
     return np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
