@@ -166,3 +166,21 @@ def test_bad_options_fail_in_one_line(tmp_path):
     lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
     assert len(lines) == 1 and "unknown preset 'reef'" in lines[0]
     assert not (tmp_path / "y").exists()
+
+
+def test_sun_disc_carries_the_sun_irradiance():
+    """A finite sun in the sky map: its radiance times the texels' solid angle is the irradiance
+    the preset gives, and it sits around the sun's direction."""
+    from seathru_nerfstudio.data.pathtrace.scene import sky_bitmap, sun_direction
+
+    preset = dataclasses.replace(PRESETS["coastal"], sun_radius_deg=4.0)
+    without = dataclasses.replace(preset, sun_radius_deg=0.0)
+    height = 128
+    extra = sky_bitmap(preset, height) - sky_bitmap(without, height)
+    theta = np.pi * (np.arange(height) + 0.5) / height
+    texel = (np.pi / height) * (np.pi / height) * np.sin(theta)[:, None, None]
+    np.testing.assert_allclose((extra * texel).sum(axis=(0, 1)), preset.sun_irradiance, rtol=1e-5)
+    row, col = np.unravel_index(np.argmax(extra[..., 1] * texel[..., 0]), extra.shape[:2])
+    u, v = (col + 0.5) / (2 * height), (row + 0.5) / height
+    d = np.array([np.sin(np.pi * v) * np.sin(2 * np.pi * u), np.cos(np.pi * v), -np.sin(np.pi * v) * np.cos(2 * np.pi * u)])
+    assert np.degrees(np.arccos(np.clip(d @ sun_direction(preset), -1, 1))) < 4.0
