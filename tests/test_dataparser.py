@@ -197,3 +197,68 @@ def test_registered_as_nerfstudio_dataparser() -> None:
     dataparsers, descriptions = discover_dataparsers()
     assert isinstance(dataparsers["seathru-data"], SeathruDataParserConfig)
     assert "every 8th" in descriptions["seathru-data"]
+
+
+# --------------------------------------------------------------- checks at load (issue 37)
+def test_seathru_data_refuses_an_image_of_another_size_naming_it(tmp_path: Path) -> None:
+    from seathru_nerfstudio.input_errors import InputError
+
+    root = make_dataset(tmp_path / "scene")
+    write_png16(root / "images_wb" / NAMES[3], np.full((HEIGHT, WIDTH - 2, 3), 1000))
+    with pytest.raises(InputError, match=rf"images_wb/{NAMES[3]} is {WIDTH - 2}×{HEIGHT} px, but its camera is {WIDTH}×{HEIGHT}"):
+        parse(root)
+
+
+def transforms_folder(root: Path, frames: list, **top) -> Path:
+    import json
+
+    root.mkdir(parents=True, exist_ok=True)
+    (root / "transforms.json").write_text(json.dumps({"fl_x": 10.0, "fl_y": 10.0, "cx": 4.0, "cy": 3.0, "w": 8, "h": 6, "frames": frames, **top}))
+    return root
+
+
+def frame(name: str, **extra) -> dict:
+    return {"file_path": name, "transform_matrix": np.eye(4).tolist(), **extra}
+
+
+@pytest.mark.parametrize(
+    "frames, top, message",
+    [
+        ([{"transform_matrix": np.eye(4).tolist()}], {}, 'frame 0 has no "file_path"'),
+        ([frame("a.png", transform_matrix=[[1, 0], [0, 1]])], {}, r"frame 0 \(a.png\): transform_matrix is of shape \(2, 2\)"),
+        ([frame("a.png", transform_matrix=np.diag([1.0, 1.0, float("inf"), 1.0]).tolist())], {}, r"transform_matrix\[2\]\[2\] is inf"),
+        ([frame("a.png"), frame("b.png", depth_file_path="d.png")], {}, r"frame 0 \(a.png\) has no 'depth_file_path', but 1 of the 2"),
+        ([frame("a.png")], {"fl_x": float("nan")}, "the top level: fl_x is nan"),
+        ([frame("a.png", w=0)], {}, r"frame 0 \(a.png\): w is 0; expected a finite number > 0"),
+        ([frame("a.png")], {"train_filenames": ["zz.png"]}, "train_filenames lists 1 image"),
+        ([frame("missing.png")], {}, r"file_path missing.png does not exist"),
+    ],
+)
+def test_transforms_json_problems_name_the_frame_and_field(tmp_path: Path, frames, top, message) -> None:
+    from seathru_nerfstudio.data.input_checks import DatasetError, load_transforms
+
+    root = transforms_folder(tmp_path / "scene", frames, **top)
+    for name in ("a.png", "b.png", "d.png"):
+        write_png16(root / name, np.full((6, 8, 3), 1000))
+    with pytest.raises(DatasetError, match=message) as error:
+        load_transforms(root)
+    assert str(root / "transforms.json") in str(error.value)
+
+
+def test_an_image_is_checked_again_once_it_changes(tmp_path: Path) -> None:
+    """The check is cached per file version: a file rewritten with other pixels is read again."""
+    import os
+
+    from seathru_nerfstudio.data.input_checks import DatasetError, check_images
+
+    path = tmp_path / "a.png"
+    write_png16(path, np.full((6, 8, 3), 1000))
+    check_images([path], [6], [8])
+    write_png16(path, np.zeros((6, 8, 3)))
+    os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 1))  # whatever the clock's resolution
+    with pytest.raises(DatasetError, match="all black"):
+        check_images([path], [6], [8])
+    with pytest.raises(DatasetError, match=r"is 8×6 px, but its camera is 9×6"):
+        write_png16(path, np.full((6, 8, 3), 1000))
+        os.utime(path, ns=(path.stat().st_atime_ns, path.stat().st_mtime_ns + 2))
+        check_images([path], [6], [9])

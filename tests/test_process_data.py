@@ -4,6 +4,7 @@ a non-zero exit, nothing half-written, and the input folder is never touched."""
 from __future__ import annotations
 
 import hashlib
+import os
 import shutil
 import subprocess
 import sys
@@ -163,3 +164,32 @@ def test_16bit_png_input_round_trips_exactly(tmp_path: Path) -> None:
     result = cv2.imread(str(tmp_path / "out" / "images" / "a.png"), cv2.IMREAD_UNCHANGED)
     assert result.dtype == np.uint16 and np.array_equal(source, result)
     shutil.rmtree(tmp_path / "out")
+
+
+@pytest.mark.parametrize("umask", [0o022, 0o077])
+def test_output_folder_and_files_follow_the_umask(tmp_path: Path, umask: int) -> None:
+    """As a plain mkdir/open would make them, not tempfile's 0700/0600."""
+    from seathru_nerfstudio.data.io import write_text_atomic
+
+    write_png16(tmp_path / "in" / "a.png", seed=3)
+    previous = os.umask(umask)
+    try:
+        process(ProcessSeathruData(data=tmp_path / "in", output_dir=tmp_path / "out", white_balance="none", skip_sfm=True))
+        write_text_atomic(tmp_path / "out" / "note.txt", "x")
+    finally:
+        os.umask(previous)
+    for folder in (tmp_path / "out", tmp_path / "out" / "images"):
+        assert folder.stat().st_mode & 0o777 == 0o777 & ~umask, folder
+    for file in (tmp_path / "out" / "white_balance.json", tmp_path / "out" / "note.txt"):
+        assert file.stat().st_mode & 0o777 == 0o666 & ~umask, file
+
+
+def test_identical_images_are_refused_naming_them(tmp_path: Path) -> None:
+    write_png16(tmp_path / "in" / "a.png", seed=1)
+    write_png16(tmp_path / "in" / "b.png", seed=2)
+    shutil.copy(tmp_path / "in" / "a.png", tmp_path / "in" / "c.png")
+    with pytest.raises(ProcessDataError, match=r"identical images: a.png = c.png\. .*camera to move"):
+        process(ProcessSeathruData(data=tmp_path / "in", output_dir=tmp_path / "out"))
+    assert_nothing_written(tmp_path, {"in"})
+    with pytest.raises(ProcessDataError, match="--min-registered-fraction must be in"):
+        process(ProcessSeathruData(data=tmp_path / "in", output_dir=tmp_path / "out", min_registered_fraction=1.5))

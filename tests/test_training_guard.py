@@ -169,11 +169,13 @@ def test_a_save_killed_half_way_leaves_only_complete_checkpoints(scene, tmp_path
     assert not list(trainer.staging_dir.glob("*"))
 
 
-def test_resume_from_an_empty_load_dir_says_why(scene, tmp_path):
+def test_resume_from_an_empty_load_dir_says_why(scene, tmp_path, capsys):
     empty = tmp_path / "nerfstudio_models"
     empty.mkdir()
-    with pytest.raises(FileNotFoundError, match="holds no checkpoint"):
+    with pytest.raises(SystemExit) as stopped:  # one line and exit status 1, as ns-train shows it
         make_trainer(scene, tmp_path, 2, load_dir=empty)
+    assert stopped.value.code == 1
+    assert f"{empty} holds no step-*.ckpt" in capsys.readouterr().out
 
 
 def test_the_guard_can_be_switched_off(scene, tmp_path):
