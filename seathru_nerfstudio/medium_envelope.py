@@ -112,21 +112,3 @@ def fit_envelope(
         ranges=z, dark=np.asarray(dark, dtype=np.float64), veil=p[:, 0], beta_B=p[:, 1] / scale,
         residual_light=p[:, 2], residual_decay=p[:, 3] / scale,
     )  # fmt: skip
-
-
-def envelope_backscatter_share(table: Optional[object], min_observations: int = 60) -> Optional[float]:
-    """The backscatter's share of the observed colour of an SfM observation table
-    (:class:`~seathru_nerfstudio.data.sfm_observations.SfmObservations`: ``ranges`` (P, V), ``colours``
-    (P, V, 3)), by the dark envelope: ``Σ B(z_i) / Σ I_i`` over every observation and channel, ``B``
-    the envelope's backscatter. ``None`` without a table or with fewer than ``min_observations``."""
-    if table is None:
-        return None
-    ranges = np.asarray(table.ranges, dtype=np.float64)
-    colours = np.asarray(table.colours, dtype=np.float64)
-    observed = np.isfinite(ranges) & (ranges > 0) & np.isfinite(colours).all(axis=-1)
-    if int(observed.sum()) < min_observations:
-        return None
-    z, rgb = ranges[observed], colours[observed]
-    envelope = fit_envelope(*dark_envelope(z, rgb))
-    total = float(rgb.sum())
-    return float(envelope.backscatter(z).sum()) / total if total > 0 else None

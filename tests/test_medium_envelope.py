@@ -58,19 +58,3 @@ def test_bad_observations_are_left_out_or_refused():
         dark_envelope(np.full(10, np.nan), np.zeros((10, 3)))
     with pytest.raises(ValueError, match="quantile"):
         dark_envelope(z, image, quantile=1.0)
-
-
-def test_the_envelope_share_of_a_table_is_the_backscatter_share_of_its_colours():
-    from types import SimpleNamespace
-
-    from seathru_nerfstudio.medium_envelope import envelope_backscatter_share
-
-    z, image = observations(VEIL, BETA_B, BETA_D, n=6000)
-    table = SimpleNamespace(ranges=z.reshape(2000, 3), colours=image.reshape(2000, 3, 3))
-    truth = (VEIL * -np.expm1(-BETA_B * z[:, None])).sum() / image.sum()
-    assert envelope_backscatter_share(table) == pytest.approx(truth, rel=0.1)
-    z, clear = observations(np.zeros(3), np.zeros(3), np.zeros(3), n=6000)
-    assert envelope_backscatter_share(SimpleNamespace(ranges=z.reshape(2000, 3), colours=clear.reshape(2000, 3, 3))) < 0.005
-    assert envelope_backscatter_share(None) is None
-    few = SimpleNamespace(ranges=z[:30].reshape(10, 3), colours=clear[:30].reshape(10, 3, 3))
-    assert envelope_backscatter_share(few) is None

@@ -195,16 +195,6 @@ def test_decision_rule_on_synthetic_evidence(case, expected):
     assert reason
 
 
-def test_the_dark_envelope_decides_none_when_the_scene_has_sfm():
-    """A sky learned as veiling light gives the warm-up a large backscatter share; the envelope of
-    the surfaces says there is none, and it decides. Without SfM the warm-up's share decides."""
-    sky = evidence(share=0.9, B_inf=(0.8, 0.85, 0.9))
-    assert choose_medium_model(sky)[0] != "none"
-    chosen, reason = choose_medium_model(dataclasses.replace(sky, envelope_share=0.001))
-    assert chosen == "none" and "dark-envelope" in reason
-    assert choose_medium_model(dataclasses.replace(evidence(share=0.001), envelope_share=0.3))[0] != "none"
-
-
 def test_decision_rule_thresholds_are_the_rules():
     water = evidence()
     assert choose_medium_model(water, ChoiceRule(tie_ratio=1.5))[0] == "uniform"
