@@ -44,9 +44,3 @@ def test_auto_keeps_no_medium_in_clear_air(tmp_path):
     model = train_auto("none", tmp_path)
     assert model.medium_model == "none"
     assert int(model.medium_model_step) == -1  # restarted (the default): no blend
-
-
-@pytest.mark.slow
-def test_auto_keeps_a_coloured_medium_in_water(tmp_path):
-    model = train_auto("water", tmp_path)
-    assert model.medium_model in ("seathru", "uniform")

@@ -35,7 +35,8 @@ def run(tmp_path_factory):
     out = tmp_path_factory.mktemp("decomposition")
     cmd = [
         sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run",
-        "--scenes", "water", "--methods", f"seathru-nerf-lite:medium_first_steps={FIRST_STAGE},medium_fit_step={FIT_STEP}",
+        "--scenes", "water", "--methods",
+        f"seathru-nerf-lite:medium_first_steps={FIRST_STAGE},medium_fit_step={FIT_STEP},pipeline.model.research.auto_decision_step={FIT_STEP}",
         "--output-dir", str(out), "--budget-iterations", str(ITERATIONS), "--num-evals", "2",
         "--first-eval-fraction", str((FIRST_STAGE + 10) / ITERATIONS),
         "--width", "48", "--height", "36", "--num-views", "10", "--threads", "1",
@@ -68,6 +69,14 @@ def test_veiling_light_moves_toward_the_truth(run):
     early, late = run
     assert late["medium_error"]["B_inf"]["rel_mean"] < 0.5 * early["medium_error"]["B_inf"]["rel_mean"]
     assert late["medium_error"]["B_inf"]["rel_mean"] < 0.5
+
+
+@pytest.mark.slow
+def test_auto_keeps_a_coloured_medium_in_water(run):
+    """``auto`` decides at the fit's step, as in the defaults (both at 500), and keeps water's medium."""
+    early, late = run
+    assert early["medium_model"] == "seathru"  # undecided renders seathru
+    assert late["medium_model"] in ("seathru", "uniform")
 
 
 @pytest.mark.slow

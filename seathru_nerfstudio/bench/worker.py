@@ -112,6 +112,8 @@ def evaluate(pipeline, lpips, scale: float, truth) -> Dict[str, Any]:
     finally:
         model.train()
     record: Dict[str, Any] = {"metrics": scoring.mean_metrics(per_view), "per_view": per_view}
+    if hasattr(model, "medium_model"):  # the model in use: auto's choice once it has decided
+        record["medium_model"] = model.medium_model
     if all(media.values()):
         predicted = scoring.medium_per_metre(
             torch.cat(media["medium_rgb"]),
