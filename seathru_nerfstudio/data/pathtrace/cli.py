@@ -176,14 +176,18 @@ def generate(config: PathtraceConfig) -> Path:
             failure, registration = error, {"poses": config.poses, "failed": str(error)}
             summary["options_hash"] = None
         summary["registration"] = registration
+        previous = (record or {}).get("registration") or {}
+        if reuse and (previous.get("failed") or previous.get("previous_sfm")):
+            registration["previous_sfm"] = previous.get("previous_sfm") or previous  # what SfM did on these renders
         summary["seconds_total"] = time.perf_counter() - start
         (build / "scene.json").write_text(json.dumps(summary, indent=2) + "\n")
     if failure is not None:
         raise PathtraceError(f"{failure} (the renders are kept in {out}; --poses truth reuses them)")
     reg = registration
+    poses = f"{reg['registered']}/{reg['total']} registered" if config.poses == "sfm" else "TRUE poses (diagnostic)"
     CONSOLE.print(
         f"seathru-pathtrace: {config.preset}: {config.num_views} views {config.width}x{config.height} at {config.spp} spp "
-        f"({seconds['total']:.1f} s/view), {reg['registered']}/{reg['total']} registered, into {out} "
+        f"({seconds['total']:.1f} s/view), {poses}, into {out} "
         f"in {time.perf_counter() - start:.0f} s"
     )
     return out
