@@ -4,9 +4,11 @@
   (``seathru-synth``, then ``ns-train``; see ``tests/browser/tiny_checkpoint.py`` for its scene,
   model size and iterations), trained once per run: ``{"root", "scene", "config"}``, the run
   folder being ``config.parent`` (``config.yml``, ``nerfstudio_models/step-*.ckpt``, TensorBoard
-  events with the loss of every step). Use it for anything that needs *a* trained model or a
-  checkpoint; write only into your own ``tmp_path``, never into the run. ``tiny_run`` is the
-  same run under its older name.
+  events with the loss of every step): 64x48, 8 views, 40 steps, all of them the first stage
+  (veiling light and SfM geometry; the object colour is untrained). Use it for anything that
+  needs *a* trained model or a checkpoint; write only into your own ``tmp_path``, never into
+  the run. ``tiny_run`` is the same run under its older name. Its training (and ``ns-eval``
+  after it) starts in the background as soon as the tests are collected, if any of them needs it.
 * ``ns_eval_results``: the real ``ns-eval`` on it, also once; ``tiny_pipeline`` its pipeline
   loaded in this process (``eval_setup``, as ns-eval and ns-render load it);
 * ``ns_render``: nerfstudio's ``ns-render`` entry point in-process (the CLI's start-up,
@@ -21,8 +23,9 @@ and ``test_medium_fit.py`` 145 s against 10 s.
 Every test that uses the trained run is marked ``slow`` (``pytest -m "not slow"`` leaves them
 out). The suite runs in a random order (``pytest-randomly``, in the ``test`` extra): every test
 file must pass alone and in any order; the seed is printed at the end of the run
-(``--randomly-seed=N`` repeats an order, ``-p no:randomly`` turns the shuffle off). pytest-randomly also reseeds ``random`` and NumPy's global generator before
-each test; tests that need a seed set their own.
+(``--randomly-seed=N`` repeats an order, ``-p no:randomly`` turns the shuffle off).
+pytest-randomly also reseeds ``random`` and NumPy's global generator before each test; tests
+that need a seed set their own.
 """
 
 from __future__ import annotations
@@ -30,6 +33,7 @@ from __future__ import annotations
 import json
 import os
 import sys
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 from typing import Dict
 
@@ -48,11 +52,44 @@ def pytest_configure(config) -> None:
     torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
 
 
+TRAINED_RUN_USERS = {"tiny_trained_run", "tiny_run", "ns_eval_results", "tiny_pipeline"}
+_background: Dict[str, Future] = {}
+
+
+def _start_in_background(root: Path) -> None:
+    """Train the tiny run, then run ``ns-eval`` on it, one after the other on a thread of this
+    process that only waits for the CLIs (``_background["run"]``, ``_background["eval"]``)."""
+    worker = ThreadPoolExecutor(1, thread_name_prefix="tiny_trained_run")
+
+    def evaluate() -> Dict[str, float]:
+        config = _background["run"].result()["config"]
+        output = root / "eval" / "eval.json"
+        output.parent.mkdir()
+        tiny_checkpoint.run(tiny_checkpoint.BIN / "ns-eval", "--load-config", config, "--output-path", output, cwd=output.parent)
+        return json.loads(output.read_text())["results"]
+
+    _background["run"] = worker.submit(tiny_checkpoint.train_tiny, root)
+    _background["eval"] = worker.submit(evaluate)
+    worker.shutdown(wait=False)
+
+
+def pytest_collection_finish(session) -> None:
+    """Start the tiny run as soon as a collected test needs it: its CLIs run on one thread, the
+    tests before it on the other core."""
+    if session.config.option.collectonly:
+        return
+    if any(TRAINED_RUN_USERS & set(getattr(item, "fixturenames", ())) for item in session.items):
+        _start_in_background(session.config._tmp_path_factory.mktemp("tiny_trained_run"))
+
+
 @pytest.fixture(scope="session")
 def tiny_trained_run(tmp_path_factory) -> Dict[str, Path]:
     """``{"root", "scene", "config"}`` of a tiny ``seathru-nerf-lite`` run trained once per
-    ``pytest`` run through ``seathru-synth`` and ``ns-train`` (:func:`tiny_checkpoint.train_tiny`)."""
-    return tiny_checkpoint.train_tiny(tmp_path_factory.mktemp("tiny_trained_run"))
+    ``pytest`` run through ``seathru-synth`` and ``ns-train`` (:func:`tiny_checkpoint.train_tiny`),
+    started in the background when the tests were collected."""
+    if "run" not in _background:  # not seen at collection (requested dynamically)
+        _start_in_background(tmp_path_factory.mktemp("tiny_trained_run"))
+    return _background["run"].result()
 
 
 @pytest.fixture(scope="session")
@@ -62,13 +99,9 @@ def tiny_run(tiny_trained_run) -> Dict[str, Path]:
 
 
 @pytest.fixture(scope="session")
-def ns_eval_results(tiny_run, tmp_path_factory) -> Dict[str, float]:
-    """``results`` of nerfstudio's ``ns-eval`` CLI on the tiny run."""
-    output = tmp_path_factory.mktemp("ns_eval") / "eval.json"
-    tiny_checkpoint.run(
-        tiny_checkpoint.BIN / "ns-eval", "--load-config", tiny_run["config"], "--output-path", output, cwd=output.parent
-    )
-    return json.loads(output.read_text())["results"]
+def ns_eval_results(tiny_trained_run) -> Dict[str, float]:
+    """``results`` of nerfstudio's ``ns-eval`` CLI on the tiny run (run right after its training)."""
+    return _background["eval"].result()
 
 
 @pytest.fixture(scope="session")

@@ -45,6 +45,6 @@ def test_ns_render_writes_images_of_several_outputs_in_one_call(tiny_run, tmp_pa
     depth = sorted((tmp_path / "test" / "depth").rglob("*.png"))
     assert clean and [p.name for p in clean] == [p.name for p in depth]  # one image per held-out view
     first_clean, first_depth = iio.imread(clean[0])[..., :3], iio.imread(depth[0])[..., :3]
-    assert first_clean.shape == first_depth.shape == (48, 64, 3)
+    assert first_clean.shape == first_depth.shape == (tiny_checkpoint.HEIGHT, tiny_checkpoint.WIDTH, 3)
     assert first_clean.std() > 0 and first_depth.std() > 0
     assert np.abs(first_clean.astype(float) - first_depth).mean() > 5

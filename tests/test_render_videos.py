@@ -156,7 +156,7 @@ def test_spiral(tiny_run, out_dir, path_cli, ns_render):
         "--rendered-output-names", "clean_display", "--seconds", 1, "--frame-rate", 3, "--downscale-factor", 2,
     )  # fmt: skip
     video = read_video(spiral)
-    assert video.shape[0] == 3 and video.shape[1:3] == (24, 32), video.shape
+    assert video.shape[0] == 3 and video.shape[1:3] == (tiny_checkpoint.HEIGHT // 2, tiny_checkpoint.WIDTH // 2), video.shape
 
 
 def test_ns_render_cli_water_split_shows_water_left_and_clean_right(path_cli):

@@ -13,6 +13,7 @@ import torch
 
 from seathru_nerfstudio.compat import load_checkpoint
 
+from tiny_checkpoint import start_group, stop_group
 from tiny_training import BIN, TINY_MODEL_ARGS, make_scene
 
 pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
@@ -20,7 +21,7 @@ pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
 STEPS = 12
 
 
-def trained_state(scene: Path, out: Path, name: str, seed: int) -> dict:
+def start_training(scene: Path, out: Path, name: str, seed: int) -> subprocess.Popen:
     command = [
         str(BIN / "ns-train"), "seathru-nerf-lite",
         "--data", str(scene),
@@ -32,17 +33,30 @@ def trained_state(scene: Path, out: Path, name: str, seed: int) -> dict:
         *TINY_MODEL_ARGS,
     ]  # fmt: skip
     env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=900)
-    assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
+    with open(out.parent / f"{name}.log", "w") as log:
+        return start_group(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+
+
+def trained_state(out: Path, name: str) -> dict:
     (checkpoint,) = (out / "repeat" / "seathru-nerf-lite" / name / "nerfstudio_models").glob("step-*.ckpt")
     return load_checkpoint(checkpoint)["pipeline"]
 
 
 @pytest.fixture(scope="module")
 def states(tmp_path_factory):
+    """Three ``ns-train`` processes, run side by side (each on one thread: the start-up, importing
+    nerfstudio, is most of a 12-step run)."""
     root = tmp_path_factory.mktemp("repeatable")
     scene = make_scene(root)
-    return {name: trained_state(scene, root / "outputs", name, seed) for name, seed in (("a", 3), ("b", 3), ("c", 4))}
+    runs = {name: start_training(scene, root / "outputs", name, seed) for name, seed in (("a", 3), ("b", 3), ("c", 4))}
+    try:
+        for name, proc in runs.items():
+            proc.wait(timeout=900)
+            assert proc.returncode == 0, (root / f"{name}.log").read_text()[-5000:]
+    finally:
+        for proc in runs.values():
+            stop_group(proc)  # a run left behind by a failure, and any data worker
+    return {name: trained_state(root / "outputs", name) for name in runs}
 
 
 def test_the_same_seed_trains_the_same_model(states):

@@ -14,7 +14,10 @@ from typing import Dict
 from tiny_training import BIN, SMALL_MODEL_ARGS  # tests/ is on sys.path under pytest
 
 ITERATIONS = 40
-"""Enough for the training loss to fall to well under half (the veiling light fits first)."""
+"""Enough for the training loss to fall to well under half (the veiling light fits first). All
+of it is ``seathru-nerf-lite``'s first stage (``medium_first_steps``, 200): the veiling light and
+the SfM geometry learn, the object colour does not."""
+WIDTH, HEIGHT, VIEWS = 64, 48, 8
 
 
 def quiet_env(threads: int = 1) -> Dict[str, str]:
@@ -58,9 +61,9 @@ def run(*args, cwd: Path, timeout: float = 900) -> subprocess.CompletedProcess:
     return result
 
 
-def train_tiny(root: Path, iterations: int = ITERATIONS, width: int = 64, height: int = 48) -> Dict[str, Path]:
-    """Synthetic water scene (8 views) and a checkpoint after ``iterations`` steps, with the
-    training loss logged at every step (TensorBoard events in the run folder).
+def train_tiny(root: Path, iterations: int = ITERATIONS, width: int = WIDTH, height: int = HEIGHT) -> Dict[str, Path]:
+    """Synthetic water scene (``VIEWS`` views) and a checkpoint after ``iterations`` steps, with
+    the training loss logged at every step (TensorBoard events in the run folder).
 
     ``SEATHRU_TINY_CHECKPOINT=<dir>`` reuses (or first fills) that folder instead: for
     iterating on the tests locally."""
@@ -72,7 +75,7 @@ def train_tiny(root: Path, iterations: int = ITERATIONS, width: int = 64, height
         if found:
             return {"root": root, "scene": root / "scene", "config": found[0]}
     scene = root / "scene"
-    run(BIN / "seathru-synth", "--output-dir", scene, "--width", width, "--height", height, "--num-views", 8, cwd=root)
+    run(BIN / "seathru-synth", "--output-dir", scene, "--width", width, "--height", height, "--num-views", VIEWS, cwd=root)
     run(
         BIN / "ns-train", "seathru-nerf-lite",
         "--data", scene,
