@@ -6,7 +6,7 @@ hanging in a data-loading worker, training on NaNs, or failing deep inside nerfs
 
 * ``transforms.json`` (:func:`load_transforms`): valid JSON, at least one frame, every frame with
   a ``file_path`` and a finite 4×4 (or 3×4) ``transform_matrix``, finite camera numbers, the
-  files it names (image, ``depth_file_path``, ``mask_path``, ``ply_file_path``) present, and the
+  files it names (image, ``depth_file_path``, ``mask_path``) present, and the
   split lists naming frames; a field given for some frames must be given for all.
 * Images (:func:`check_images`): readable, of the size the camera says (nerfstudio stacks them:
   one of another size kills its data-loading worker), no NaN/inf pixel, not all black, not all
@@ -92,9 +92,6 @@ def load_transforms(path: Path) -> Dict[str, Any]:
                 f"{path}: {split}_filenames lists {len(unknown)} image(s) that no frame has, e.g. {unknown[0]}. "
                 "Remove them from the list or add their frames"
             )
-    ply = meta.get("ply_file_path")
-    if ply is not None and not (path.parent / str(ply)).is_file():
-        raise DatasetError(f"{path}: ply_file_path {ply} does not exist ({path.parent / str(ply)}). Restore it or remove the field")
     for index, frame in enumerate(frames):
         for field in FRAME_FILE_FIELDS:
             if field in frame and not (path.parent / frame[field]).is_file():
