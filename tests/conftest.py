@@ -12,7 +12,10 @@
 * ``ns_eval_results``: the real ``ns-eval`` on it, also once; ``tiny_pipeline`` its pipeline
   loaded in this process (``eval_setup``, as ns-eval and ns-render load it);
 * ``ns_render``: nerfstudio's ``ns-render`` entry point in-process (the CLI's start-up,
-  importing nerfstudio, is paid once).
+  importing nerfstudio, is paid once);
+* ``decomposition_run``: the ``results.json`` of the decomposition check's short ``seathru-bench
+  run`` (``tiny_training.DECOMPOSITION_BENCH``), started in the background at collection like the
+  tiny run: the longest work of the suite overlaps the rest.
 
 Every process of the suite computes on one thread (``OMP_NUM_THREADS=1`` unless set, and
 ``torch.set_num_threads(1)`` here): on a 2-core machine torch's two threads wait on each other
@@ -41,6 +44,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent / "browser"))
 import tiny_checkpoint  # noqa: E402
+import tiny_training  # noqa: E402
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")  # the CLIs the tests start, too
 os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
@@ -73,13 +77,35 @@ def _start_in_background(root: Path) -> None:
     worker.shutdown(wait=False)
 
 
+BENCH_RUNS = {"decomposition_run": tiny_training.DECOMPOSITION_BENCH}
+"""Session fixtures that are one ``seathru-bench run`` each (their arguments), started at collection."""
+
+
+def _start_bench(name: str, root: Path) -> None:
+    worker = ThreadPoolExecutor(1, thread_name_prefix=name)
+    _background[name] = worker.submit(tiny_training.bench_run, BENCH_RUNS[name], root)
+    worker.shutdown(wait=False)
+
+
 def pytest_collection_finish(session) -> None:
-    """Start the tiny run as soon as a collected test needs it: its CLIs run on one thread, the
-    tests before it on the other core."""
+    """Start the tiny run and the bench runs as soon as a collected test needs them: their CLIs run
+    on one thread each, the tests meanwhile on the other core."""
     if session.config.option.collectonly:
         return
-    if any(TRAINED_RUN_USERS & set(getattr(item, "fixturenames", ())) for item in session.items):
+    used = set().union(*(set(getattr(item, "fixturenames", ())) for item in session.items))
+    for name in BENCH_RUNS:
+        if name in used:
+            _start_bench(name, session.config._tmp_path_factory.mktemp(name))
+    if TRAINED_RUN_USERS & used:
         _start_in_background(session.config._tmp_path_factory.mktemp("tiny_trained_run"))
+
+
+@pytest.fixture(scope="session")
+def decomposition_run(tmp_path_factory) -> dict:
+    """``results.json`` of the decomposition check's bench run (``tiny_training.DECOMPOSITION_BENCH``)."""
+    if "decomposition_run" not in _background:
+        _start_bench("decomposition_run", tmp_path_factory.mktemp("decomposition_run"))
+    return _background["decomposition_run"].result()
 
 
 @pytest.fixture(scope="session")

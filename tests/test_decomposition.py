@@ -14,38 +14,16 @@ losses of two runs of one seed part in the 8th digit after about 20 steps.
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-
 import pytest
 
-ITERATIONS = 300
-FIRST_STAGE = 50
-"""The veiling-light and geometry stage, shortened from 200 to fit CI's time."""
-FIT_STEP = 150
-"""The medium fit (``medium_fit_step``), moved from 500 to half-way, once the veiling light has
-settled: fitted at step 60 (blue B∞ still 15% low) the clean image ended at 14.8 dB, at 150 at
-16.2 dB, with the defaults' excess term and without the fit 11.3 (2026-11-26, f139320). The prior's strong
-early weight lasts to the fit."""
+from tiny_training import DECOMPOSITION_ITERATIONS as ITERATIONS
 
 
 @pytest.fixture(scope="module")
-def run(tmp_path_factory):
-    out = tmp_path_factory.mktemp("decomposition")
-    cmd = [
-        sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run",
-        "--scenes", "water", "--methods",
-        f"seathru-nerf-lite:medium_first_steps={FIRST_STAGE},medium_fit_step={FIT_STEP},pipeline.model.research.auto_decision_step={FIT_STEP}",
-        "--output-dir", str(out), "--budget-iterations", str(ITERATIONS), "--num-evals", "2",
-        "--first-eval-fraction", str((FIRST_STAGE + 10) / ITERATIONS),
-        "--width", "48", "--height", "36", "--num-views", "10", "--threads", "1",
-    ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=1200)
-    assert proc.returncode == 0, proc.stderr[-3000:]
-    results = json.loads((out / "results.json").read_text())
-    assert results["failures"] == []
-    (seathru,) = results["runs"]
+def run(decomposition_run):
+    """The first and the last evaluation of the decomposition check's bench run (conftest)."""
+    assert decomposition_run["failures"] == []
+    (seathru,) = decomposition_run["runs"]
     return seathru["evals"][0], seathru["evals"][-1]
 
 
