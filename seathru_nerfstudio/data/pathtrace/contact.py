@@ -18,11 +18,12 @@ import numpy as np
 from seathru_nerfstudio.data.linear_images import read_linear_image
 
 
-def contact_sheet(scenes: Sequence[Path], out: Path, view: str = "frame_00008.png") -> None:
-    """Write ``out`` (8-bit PNG): one row per scene folder, columns I | J | medium-free."""
+def contact_sheet(scenes: Sequence[Path], out: Path, view: str = "frame_00008.png", scale: float = 0.6) -> None:
+    """Write ``out`` (8-bit PNG): one row per scene folder, columns I | J | medium-free, each
+    tile area-resized by ``scale`` (the noise makes full-size sheets large files)."""
     rows = []
     for scene in scenes:
-        tiles = [read_linear_image(Path(scene) / sub / view)[..., :3] for sub in ("images", "ground_truth/clean", "ground_truth/dry")]
+        tiles = [read_linear_image(Path(scene) / sub / view, scale_factor=scale)[..., :3] for sub in ("images", "ground_truth/clean", "ground_truth/dry")]
         rows.append(np.concatenate([np.pad(t, ((2, 2), (2, 2), (0, 0)), constant_values=1.0) for t in tiles], axis=1))
     sheet = np.concatenate(rows, axis=0)
     display = np.round(np.clip(sheet, 0.0, 1.0) ** (1.0 / 2.2) * 255.0).astype(np.uint8)
