@@ -16,6 +16,7 @@ from nerfstudio.cameras.camera_optimizers import CameraOptimizerConfig
 from nerfstudio.configs.base_config import PrintableConfig
 from nerfstudio.models.nerfacto import NerfactoModelConfig
 
+from seathru_nerfstudio.input_errors import InputError
 from seathru_nerfstudio.medium_choice import ChoiceRule
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS
 from seathru_nerfstudio.rendering import Quadrature
@@ -119,52 +120,52 @@ class SeathruModelConfig(NerfactoModelConfig):
         self.check()
 
     def check(self) -> None:
-        """Refuse settings this model cannot train with, naming the option (also called when the
+        """Refuse settings this model cannot train with, naming the option, as an :class:`InputError` (also called when the
         model is built, for configs changed after construction)."""
         research = self.research
         if research.medium_oracle is not None and self.medium_model == "auto":
             self.medium_model = "seathru"  # an oracle is the medium: nothing to choose, and a tie would change it
         if self.medium_model != "auto" and self.medium_model not in MEDIUM_MODELS:
-            raise ValueError(
+            raise InputError(
                 f"--pipeline.model.medium-model: unknown {self.medium_model!r}; expected auto or one of {', '.join(MEDIUM_MODELS)}"
             )
         for name, value in (("medium-first-steps", self.medium_first_steps), ("medium-fit-step", self.medium_fit_step)):
             if value is not None and value < 0:
-                raise ValueError(f"--pipeline.model.{name} must be >= 0 (got {value})")
+                raise InputError(f"--pipeline.model.{name} must be >= 0 (got {value})")
         if self.medium_fit_step is not None and self.medium_fit_step <= self.medium_first_steps:
-            raise ValueError(
+            raise InputError(
                 f"--pipeline.model.medium-fit-step ({self.medium_fit_step}) must come after --pipeline.model.medium-first-steps "
                 f"({self.medium_first_steps}): the fit reads the veiling light learned in that stage (None turns the fit off)"
             )
         if self.medium_model == "auto" and not (
             self.medium_first_steps < research.auto_decision_step and 0 < research.auto_evidence_steps
         ):
-            raise ValueError(
+            raise InputError(
                 f"--pipeline.model.research.auto-decision-step ({research.auto_decision_step}) must come after "
                 f"--pipeline.model.medium-first-steps ({self.medium_first_steps}), with auto-evidence-steps "
                 f"({research.auto_evidence_steps}) > 0"
             )
         if research.medium_fit_oracle is not None and (self.medium_fit_step is None or research.medium_oracle is not None):
-            raise ValueError(
+            raise InputError(
                 "--pipeline.model.research.medium-fit-oracle replaces the fit of --pipeline.model.medium-fit-step: "
                 "set that step, without research.medium-oracle"
             )
         for path_name, path in (("medium-oracle", research.medium_oracle), ("medium-fit-oracle", research.medium_fit_oracle)):
             if path is not None and not Path(path).is_file():
-                raise ValueError(f"--pipeline.model.research.{path_name}: {path} does not exist")
+                raise InputError(f"--pipeline.model.research.{path_name}: {path} does not exist")
         if not research.medium_fit_max_log_error > 0:  # NaN fails too
-            raise ValueError(f"--pipeline.model.research.medium-fit-max-log-error must be > 0 (got {research.medium_fit_max_log_error})")
+            raise InputError(f"--pipeline.model.research.medium-fit-max-log-error must be > 0 (got {research.medium_fit_max_log_error})")
         early = research.binary_prior_early_mult
         if not (early is None or early >= 0) or research.backscatter_excess_steps < 0:  # NaN fails too
-            raise ValueError(
+            raise InputError(
                 "--pipeline.model.research.binary-prior-early-mult must be None or >= 0 and backscatter-excess-steps >= 0 "
                 f"(got {early} and {research.backscatter_excess_steps})"
             )
         for name, value in (("binary-prior-mult", self.binary_prior_mult), ("depth-loss-mult", self.depth_loss_mult)):
             if not (math.isfinite(value) and value >= 0):
-                raise ValueError(f"--pipeline.model.{name} must be finite and >= 0 (got {value})")
+                raise InputError(f"--pipeline.model.{name} must be finite and >= 0 (got {value})")
         if self.predict_normals:
-            raise ValueError(
+            raise InputError(
                 "--pipeline.model.predict-normals True is not supported: the model renders no normals "
                 "(for ns-export use --normal-method open3d)"
             )
