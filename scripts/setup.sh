@@ -12,14 +12,21 @@ command -v ffmpeg >/dev/null || apt_packages+=(ffmpeg)
 command -v chromium >/dev/null || apt_packages+=(chromium)
 # Mitsuba's fast CPU variant (llvm_ad_rgb, seathru-pathtrace) JIT-compiles with libLLVM >= 19; without it
 # the renderer falls back to the much slower scalar_rgb.
-ls /usr/lib/*/libLLVM.so.19* /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 || apt_packages+=(libllvm19)
-if [ ${#apt_packages[@]} -gt 0 ]; then
+optional_packages=()
+ls /usr/lib/*/libLLVM.so.19* /usr/lib/*/libLLVM-19.so* >/dev/null 2>&1 || optional_packages+=(libllvm19)
+if [ $((${#apt_packages[@]} + ${#optional_packages[@]})) -gt 0 ]; then
   if [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
-    echo "setup: apt-get install ${apt_packages[*]}"
     apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${apt_packages[@]}" >/dev/null
+    if [ ${#apt_packages[@]} -gt 0 ]; then
+      echo "setup: apt-get install ${apt_packages[*]}"
+      DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${apt_packages[@]}" >/dev/null
+    fi
+    if [ ${#optional_packages[@]} -gt 0 ]; then  # a speed-up only: never fail the set-up for it
+      DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${optional_packages[@]}" >/dev/null \
+        || echo "setup: warning: ${optional_packages[*]} not installed; seathru-pathtrace uses the slower scalar_rgb" >&2
+    fi
   else
-    echo "setup: warning: please install ${apt_packages[*]} (e.g. sudo apt-get install ${apt_packages[*]})" >&2
+    echo "setup: warning: please install ${apt_packages[*]} ${optional_packages[*]} (e.g. with sudo apt-get install)" >&2
   fi
 fi
 
