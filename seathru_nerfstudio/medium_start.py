@@ -1,4 +1,4 @@
-"""The medium's densities where the object field enters, bounded by the darkest SfM observations.
+"""The backscatter density where the object field enters, bounded by the darkest SfM observations.
 
 A surface at range ``z`` (world units) shows, per channel,
 
@@ -21,13 +21,6 @@ with it the attenuation's). Path-traced coastal water (``seathru-pathtrace``, β
 0.08 /m) started at 0.45 /m in every channel, and the object colour was dead by step 210
 (docs/history.md, 2026-11-27). The bound is applied once, at the end of the first stage, under the
 veiling light learned there, and only lowers a density.
-
-The attenuation has no such bound, but too high a start is as fatal: a surface's light
-``e^{-β_D z}`` becomes too small for the colour's gradient to stand above the noise. Path-traced fog
-(``β`` 0.12 /m) started at 0.51 /m (optical depth 3 at the mean SfM range) and its colour died at step
-201 even with the backscatter capped. So the attenuation starts at most at the same cap: the
-densest uniform medium (``β_D = β_B``) the darkest surfaces allow. The medium fit
-(``medium_fit_step``) and the gradients then separate the two from there.
 
 Units: ranges in world units, densities per world unit, colours linear.
 """
@@ -81,9 +74,9 @@ def backscatter_density_cap(
 
 
 def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None:
-    """Callback at the end of the first stage: lower the scene medium's backscatter densities, and
-    its attenuation densities with them, to :func:`backscatter_density_cap` of the dataparser's SfM
-    observations under the veiling light learned so far; a density already below stays. ``optimizers``: the trainer's, whose
+    """Callback at the end of the first stage: lower the scene medium's backscatter densities to
+    :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
+    learned so far; a density already below stays. ``optimizers``: the trainer's, whose
     ``medium_density`` Adam state is cleared where a density moved."""
     config = model.config
     if not TrainingPhases(config, step).ends(config.medium_first_steps) or config.medium_scope != "scene":
@@ -99,17 +92,16 @@ def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None
         veil = torch.sigmoid(medium.rgb_logit.double())
     seen = torch.isfinite(torch.from_numpy(table.ranges))
     cap = backscatter_density_cap(torch.from_numpy(table.ranges)[seen], torch.from_numpy(table.colours)[seen], veil)
-    capped = torch.minimum(densities, cap.clamp_min(DENSITY_FLOOR).repeat(2))
-    if bool((capped >= densities).all()):
+    beta_b = torch.minimum(densities[3:], cap.clamp_min(DENSITY_FLOOR))
+    if bool((beta_b >= densities[3:]).all()):
         return
     with torch.no_grad():
-        per_scene_unit = capped / model.world_scale
-        medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in per_scene_unit]))
+        per_scene_unit = beta_b / model.world_scale
+        medium.density_raw[3:].copy_(torch.tensor([inverse_softplus(float(d)) for d in per_scene_unit]))
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
     CONSOLE.print(
-        f"[bold]seathru step {step}: densities capped by the darkest 1% of {table.num_observations} SfM observations "
-        f"under B_inf {show(veil)}: beta_D {show(densities[:3])} -> {show(capped[:3])}, beta_B {show(densities[3:])} -> "
-        f"{show(capped[3:])} /m"
+        f"[bold]seathru step {step}: backscatter density capped by the darkest 1% of {table.num_observations} SfM "
+        f"observations under B_inf {show(veil)}: beta_B {show(densities[3:])} -> {show(beta_b)} /m"
     )
