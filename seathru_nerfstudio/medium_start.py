@@ -1,5 +1,4 @@
-"""The medium's densities where the object field enters: the backscatter's bounded by the darkest SfM
-observations, the attenuation's fitted to them.
+"""The backscatter density where the object field enters, bounded by the darkest SfM observations.
 
 A surface at range ``z`` (world units) shows, per channel,
 
@@ -23,16 +22,10 @@ with it the attenuation's). Path-traced coastal water (``seathru-pathtrace``, β
 (docs/history.md, 2026-11-27). The bound is applied once, at the end of the first stage, under the
 veiling light learned there, and only lowers a density.
 
-The attenuation has no such bound, and a start too high is as fatal: a surface's light
-``e^{-β_D z}`` becomes too small for the colour's gradient to stand above the noise (path-traced
-fog, β 0.12 /m, started at 0.51 /m; clear air at 0.45). Nor may it start far too low: surfaces then
-render brighter than the image, and the object density collapses within ten steps (the formula-drawn
-water demo, red started at 0.64 /m against 1.3). So the attenuation starts where the SfM
-observations put it, by the medium fit (:func:`~seathru_nerfstudio.medium_fit.fit_densities`) under
-the same veiling light, in each channel whose fit is certain (standard error of ``ln β_D`` at most
-``research.medium_fit_max_log_error``); elsewhere at most at the backscatter's cap, the densest
-uniform medium (``β_D = β_B``) the darkest surfaces allow. Nothing is held: the medium fit at
-``medium_fit_step`` fits again, under the veiling light learned by then.
+The attenuation keeps its start: nothing bounds it from the darkest pixels, and a start too low
+is as harmful as one too high (surfaces rendered brighter than the image lose their density at
+entry). A start from the medium fit under the first stage's veil was measured and reverted
+(docs/history.md, 2026-11-27: on a short first stage the veil has not settled and the fit is wrong).
 
 Units: ranges in world units, densities per world unit, colours linear.
 """
@@ -48,7 +41,6 @@ from torch import Tensor
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.medium_field import inverse_softplus
-from seathru_nerfstudio.medium_fit import fit_densities
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.phases import TrainingPhases
 
@@ -86,12 +78,11 @@ def backscatter_density_cap(
     return torch.quantile(bounds, quantile, dim=0, interpolation="lower")
 
 
-def apply_medium_start(model: Any, step: int, optimizers: Any = None) -> None:
-    """Callback at the end of the first stage: from the dataparser's SfM observations, under the
-    veiling light learned so far, lower the scene medium's backscatter densities to
-    :func:`backscatter_density_cap` (one below stays), and set each attenuation density to the
-    medium fit's where that is certain, else to at most the same cap. ``optimizers``: the trainer's,
-    whose ``medium_density`` Adam state is cleared where a density moved."""
+def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None:
+    """Callback at the end of the first stage: lower the scene medium's backscatter densities to
+    :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
+    learned so far; a density already below stays. ``optimizers``: the trainer's, whose
+    ``medium_density`` Adam state is cleared where a density moved."""
     config = model.config
     if not TrainingPhases(config, step).ends(config.medium_first_steps) or config.medium_scope != "scene":
         return
@@ -104,23 +95,18 @@ def apply_medium_start(model: Any, step: int, optimizers: Any = None) -> None:
     with torch.no_grad():
         densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale  # per world unit
         veil = torch.sigmoid(medium.rgb_logit.double())
-    ranges, colours = torch.from_numpy(table.ranges), torch.from_numpy(table.colours)
-    seen = torch.isfinite(ranges)
-    cap = backscatter_density_cap(ranges[seen], colours[seen], veil).clamp_min(DENSITY_FLOOR)
-    fit = fit_densities(ranges, colours, veil, densities[:3], densities[3:])
-    certain = fit.attenuation_log_error <= config.research.medium_fit_max_log_error
-    beta_d = torch.where(certain, fit.attenuation, torch.minimum(densities[:3], cap))
-    beta_b = torch.minimum(densities[3:], cap)
-    started = torch.cat([beta_d, beta_b])
+    seen = torch.isfinite(torch.from_numpy(table.ranges))
+    cap = backscatter_density_cap(torch.from_numpy(table.ranges)[seen], torch.from_numpy(table.colours)[seen], veil)
+    beta_b = torch.minimum(densities[3:], cap.clamp_min(DENSITY_FLOOR))
+    if bool((beta_b >= densities[3:]).all()):
+        return
     with torch.no_grad():
-        per_scene_unit = started / model.world_scale
-        medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in per_scene_unit]))
+        per_scene_unit = beta_b / model.world_scale
+        medium.density_raw[3:].copy_(torch.tensor([inverse_softplus(float(d)) for d in per_scene_unit]))
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
     CONSOLE.print(
-        f"[bold]seathru step {step}: the medium starts from {table.num_observations} SfM observations under B_inf "
-        f"{show(veil)}: beta_D {show(densities[:3])} -> {show(beta_d)} /m (fitted in channel(s) "
-        f"{certain.nonzero().flatten().tolist()}, standard error of ln beta_D {show(fit.attenuation_log_error)}), "
-        f"beta_B {show(densities[3:])} -> {show(beta_b)} /m (capped by the darkest 1%)"
+        f"[bold]seathru step {step}: backscatter density capped by the darkest 1% of {table.num_observations} SfM "
+        f"observations under B_inf {show(veil)}: beta_B {show(densities[3:])} -> {show(beta_b)} /m"
     )

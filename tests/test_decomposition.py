@@ -34,11 +34,13 @@ def test_clean_error_falls_and_the_surfaces_are_at_their_depth(run):
     +0.78, +1.16 and +0.45 dB for seeds 42, 7 and 3 on one thread (2026-11-25, 0729532); with the excess
     term and no fit it fell (-1.6 dB). With both, seed 42: +3.3 dB (12.9 -> 16.2, 2026-11-26, f139320).
     The margin stays 0.3 dB; the full-size figures are in docs/benchmarks.md, their history in
-    docs/history.md."""
+    docs/history.md. The mean depth error falls; it used to halve, from an early state whose object
+    colour had died at entry. Since the backscatter is capped at entry (43bf02e, 2026-11-27) the colour
+    lives and the early error is already low: 0.283 -> 0.174 (clean 10.4 -> 19.4 dB), seed 42."""
     early, late = run
     assert late["step"] == ITERATIONS
     assert late["metrics"]["clean_psnr"] > early["metrics"]["clean_psnr"] + 0.3, (early["metrics"], late["metrics"])
-    assert late["metrics"]["depth_abs_rel"] < 0.5 * early["metrics"]["depth_abs_rel"], (early["metrics"], late["metrics"])
+    assert late["metrics"]["depth_abs_rel"] < early["metrics"]["depth_abs_rel"], (early["metrics"], late["metrics"])
     assert late["metrics"]["depth_abs_rel_median"] < 0.2, late["metrics"]
 
 
