@@ -185,7 +185,15 @@ class SceneMedium(nn.Module):
         rgb = torch.as_tensor(init_rgb, dtype=torch.float64).expand(3)
         self.rgb_logit = nn.Parameter(torch.logit(rgb).float().clone())
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
-        self.density_raw = nn.Parameter(torch.tensor([inverse_softplus(float(d)) for d in densities]))
+        self.density_raw = nn.Parameter(torch.zeros(6))
+        self.set_densities(densities)
+
+    def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
+        """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene
+        unit, > 0) to ``densities`` exactly, through the inverse of the softplus."""
+        values = [inverse_softplus(float(d)) for d in densities]
+        with torch.no_grad():
+            self.density_raw[first : first + len(values)].copy_(torch.tensor(values, dtype=self.density_raw.dtype))
 
     def density_parameters(self) -> list:
         """The attenuation and backscatter densities: weakly determined by the images, so they

@@ -40,7 +40,7 @@ from torch import Tensor
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio.medium_field import inverse_softplus, tie_matrix
+from seathru_nerfstudio.medium_field import tie_matrix
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.oracles import replace_with_truth
 from seathru_nerfstudio.phases import TrainingPhases
@@ -351,8 +351,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
         beta_d, beta_b, replaced = replace_with_truth(model.fit_oracle, parts, beta_d, beta_b, ~uncertain)
         CONSOLE.print(f"[bold]seathru step {step}: medium_fit_oracle: the true densities ({parts}) replace the fit")
     fitted = torch.cat([beta_d, beta_b]) / model.world_scale
-    with torch.no_grad():
-        medium.density_raw.copy_(torch.tensor([inverse_softplus(float(d)) for d in fitted]))
+    medium.set_densities(fitted)
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
     model.densities_fitted.copy_(replaced.to(model.densities_fitted.device))

@@ -40,7 +40,6 @@ from torch import Tensor
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio.medium_field import inverse_softplus
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.phases import TrainingPhases
 
@@ -86,8 +85,8 @@ def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None
     config = model.config
     if not TrainingPhases(config, step).ends(config.medium_first_steps) or config.medium_scope != "scene":
         return
-    if config.research.medium_oracle is not None:
-        return
+    if config.research.medium_oracle is not None or config.medium_model == "none":
+        return  # an oracle is the medium; clear air renders none
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:
         return
@@ -100,9 +99,7 @@ def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None
     beta_b = torch.minimum(densities[3:], cap.clamp_min(DENSITY_FLOOR))
     if bool((beta_b >= densities[3:]).all()):
         return
-    with torch.no_grad():
-        per_scene_unit = beta_b / model.world_scale
-        medium.density_raw[3:].copy_(torch.tensor([inverse_softplus(float(d)) for d in per_scene_unit]))
+    medium.set_densities(beta_b / model.world_scale, first=3)
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731

@@ -55,7 +55,7 @@ def test_the_cap_is_the_darkest_percent_of_the_bounds_and_skips_unusable_observa
 def test_the_cap_lowers_the_backscatter_at_the_end_of_the_first_stage_only(capsys):
     """The callback acts at the step that ends the first stage: each ``β_B`` above the cap (per metre,
     scene unit × scale) comes down to it, one below stays, ``β_D`` is untouched; other steps, a ray
-    medium, or no observations change nothing."""
+    medium, clear air (``none``), or no observations change nothing."""
     from seathru_nerfstudio.data.sfm_observations import SfmObservations
     from seathru_nerfstudio.metadata_keys import SCALE_KEY, SFM_OBSERVATIONS_KEY
 
@@ -84,6 +84,10 @@ def test_the_cap_lowers_the_backscatter_at_the_end_of_the_first_stage_only(capsy
     state = {k: v.clone() for k, v in ray.state_dict().items()}
     apply_backscatter_cap(ray, 4)
     assert all(torch.equal(state[k], v) for k, v in ray.state_dict().items())
+    clear = tiny_model(metadata=metadata, medium_first_steps=5, medium_fit_step=10, medium_model="none")
+    clear_before = clear.medium_field.density_raw.detach().clone()
+    apply_backscatter_cap(clear, 4)
+    assert torch.equal(clear.medium_field.density_raw.detach(), clear_before)
     bare = tiny_model(metadata={SCALE_KEY: 2.0}, medium_first_steps=5, medium_fit_step=10)
     bare_before = bare.medium_field.density_raw.detach().clone()
     apply_backscatter_cap(bare, 4)
