@@ -24,6 +24,9 @@ from tiny_training import make_scene, tiny_config
 
 ITERATIONS = 200
 """Enough for the supervised range to give opaque surfaces and empty open water at 32x24."""
+TSDF_RESOLUTION = 64
+"""Voxels along the TSDF box's longest side; a 64th of the surfaces' extent is also the distance
+within which a mesh vertex counts as on a surface."""
 
 
 @pytest.fixture(scope="module")
@@ -118,9 +121,8 @@ def in_open_water(pipeline, scene: Path, points: np.ndarray) -> np.ndarray:
     return hit
 
 
-def surface_box(pipeline, scene: Path) -> Tuple[List[float], List[float]]:
-    """The box (scene units) around every view's true surface points, with a tenth of its size
-    as margin: where a TSDF must look (nerfstudio's default box, -1..1, holds the cameras only)."""
+def true_surface_points(pipeline, scene: Path) -> torch.Tensor:
+    """``(N, 3)``: every view's true surface points (scene units), one per pixel that meets a surface."""
     points = []
     for camera, truth in views(pipeline, scene):
         rays = camera.generate_rays(camera_indices=0)
@@ -128,7 +130,13 @@ def surface_box(pipeline, scene: Path) -> Tuple[List[float], List[float]]:
         surface = torch.from_numpy(np.isfinite(truth))
         ranges = torch.from_numpy(np.where(np.isfinite(truth), truth, 0.0)).float()[..., None] * scale
         points.append((rays.origins + rays.directions * ranges)[surface])
-    points = torch.cat(points)
+    return torch.cat(points)
+
+
+def surface_box(pipeline, scene: Path) -> Tuple[List[float], List[float]]:
+    """The box (scene units) around every view's true surface points, with a tenth of its size
+    as margin: where a TSDF must look (nerfstudio's default box, -1..1, holds the cameras only)."""
+    points = true_surface_points(pipeline, scene)
     low, high = points.min(dim=0).values, points.max(dim=0).values
     margin = 0.1 * (high - low)
     return (low - margin).tolist(), (high + margin).tolist()
@@ -198,18 +206,17 @@ def test_tsdf_mesh_has_faces_and_clean_colours(run, pipeline, tmp_path):
     ns_export(
         "tsdf", "--load-config", run["config"], "--output-dir", tmp_path,
         "--bounding-box-min", *low, "--bounding-box-max", *high,
-        "--depth-output-name", "surface_depth", "--downscale-factor", 1, "--resolution", 64,
+        "--depth-output-name", "surface_depth", "--downscale-factor", 1, "--resolution", TSDF_RESOLUTION,
         "--texture-method", "nerf", "--num-pixels-per-side", 64, "--target-num-faces", 2000,
     )  # fmt: skip
     mesh = o3d.io.read_triangle_mesh(str(tmp_path / "tsdf_mesh.ply"))
     vertices, colours = np.asarray(mesh.vertices), np.asarray(mesh.vertex_colors)
     assert len(mesh.triangles) > 100
-    # Not asserted: no vertex in open water. nerfstudio's TSDF starts every voxel "inside" and
-    # runs marching cubes on all of them, so the border between carved water and voxels no view
-    # sees (the box's corners outside the frustums, the space behind the objects) becomes faces;
-    # on this scene some of them lie in open water (docs/export.md).
     assert (tmp_path / "mesh.obj").is_file() and (tmp_path / "material_0.png").is_file()
     check_mesh_colours(pipeline, vertices, colours)
+    # nerfstudio's TSDF meshes the border between carved water and voxels no view sees, some of it
+    # in open water (docs/export.md); seathru-trim-mesh removes what a view looks through
+    check_trimmed(run, pipeline, tmp_path / "tsdf_mesh.ply")
 
 
 def test_poisson_mesh_has_faces_and_clean_colours(run, pipeline, tmp_path):
@@ -223,10 +230,64 @@ def test_poisson_mesh_has_faces_and_clean_colours(run, pipeline, tmp_path):
     mesh = o3d.io.read_triangle_mesh(str(tmp_path / "poisson_mesh.ply"))
     vertices, colours = np.asarray(mesh.vertices), np.asarray(mesh.vertex_colors)
     assert len(mesh.triangles) > 100
-    # Not asserted: no vertex in open water. The point cloud has none, but a Poisson surface closes
-    # around the points and bulges past them; nerfstudio trims only its 10% least dense vertices
-    # (on this scene 1.7% of the vertices remain in open water; docs/export.md).
     check_mesh_colours(pipeline, vertices, colours)
+    # a Poisson surface closes around the points and bulges past them into the water
+    check_trimmed(run, pipeline, tmp_path / "poisson_mesh.ply")
+
+
+def check_trimmed(run, pipeline, mesh_path: Path) -> None:
+    """``seathru-trim-mesh`` leaves no vertex in the scene's open water, keeps most of the mesh's
+    faces and its colours, and leaves the input file as it was."""
+    import open3d as o3d
+
+    from seathru_nerfstudio import mesh_trim
+
+    before = mesh_path.read_bytes()
+    mesh = o3d.io.read_triangle_mesh(str(mesh_path))
+    trimmed_path = mesh_path.with_name("trimmed.ply")
+    cli(mesh_trim.entrypoint, "seathru-trim-mesh", "--load-config", run["config"], "--mesh", mesh_path, "--output", trimmed_path)
+    trimmed = o3d.io.read_triangle_mesh(str(trimmed_path))
+    vertices = np.asarray(trimmed.vertices)
+    assert mesh_path.read_bytes() == before
+    assert not in_open_water(pipeline, run["scene"], vertices).any()
+    # the surfaces stay: the true surface points that have a mesh vertex within a TSDF voxel have one after the trim too
+    from scipy.spatial import cKDTree
+
+    surface = true_surface_points(pipeline, run["scene"]).numpy()
+    voxel = float((surface.max(axis=0) - surface.min(axis=0)).max()) / TSDF_RESOLUTION
+    covered_before = cKDTree(np.asarray(mesh.vertices)).query(surface)[0] < voxel
+    covered_after = cKDTree(vertices).query(surface)[0] < voxel
+    print(f"trim: {len(vertices)} of {len(mesh.vertices)} vertices kept; surface covered {covered_before.mean():.3f} -> {covered_after.mean():.3f}")
+    assert covered_before.mean() > 0.5 and covered_after.mean() > 0.9 * covered_before.mean()
+    kept = {tuple(v) for v in np.round(np.asarray(mesh.vertices), 6)}
+    assert all(tuple(v) in kept for v in np.round(vertices, 6))  # a subset, nothing moved
+    check_mesh_colours(pipeline, vertices, np.asarray(trimmed.vertex_colors))
+
+
+def test_a_vertex_is_water_where_a_view_looks_through_it_and_a_silhouette_stays():
+    """``seen_through``: a camera at the origin looking along -z at a 4x4 image whose left half meets
+    a surface at range 2 and whose right half meets nothing. Points nearer than the surface, or
+    anywhere on the open side, are water; a point at or behind the surface (within the margin),
+    outside the image, or on the surface's outline short of the halfway line between an opaque and
+    an open pixel centre (where the bilinear opacity is 0.5), is not."""
+    from seathru_nerfstudio.mesh_trim import seen_through
+
+    opacity = np.zeros((4, 4))
+    opacity[:, :2] = 1.0
+    depth = np.where(opacity > 0, 2.0, 7.0)  # the depth of an open pixel is never read
+    c2w = np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)
+    intrinsics = (4.0, 4.0, 2.0, 2.0)  # u = 2 + 4 x / depth
+
+    def at(u: float, distance: float) -> np.ndarray:  # on the pixel-centre row 1 (v = 1.5)
+        direction = np.array([(u - 2.0) / 4.0, (2.0 - 1.5) / 4.0, -1.0])
+        return distance * direction / np.linalg.norm(direction)
+
+    points = np.stack([
+        at(0.5, 1.0), at(0.5, 1.95), at(0.5, 3.0), at(1.5, 1.85), at(2.5, 2.0), at(3.5, 50.0),
+        at(1.9, 2.0), at(2.1, 2.0), np.array([0.0, 0.0, 5.0]),
+    ])  # fmt: skip
+    looked = seen_through(points, c2w, intrinsics, opacity, depth, margin=0.1)
+    np.testing.assert_array_equal(looked, [True, False, False, True, True, True, False, True, False])
 
 
 def check_mesh_colours(pipeline, vertices: np.ndarray, colours: np.ndarray) -> None:
@@ -436,3 +497,22 @@ def test_gpu_check_matches_nerfacto_to_the_full_method():
             assert getattr(nerfacto.pipeline.model, f.name) == getattr(seathru.pipeline.model, f.name), f.name
     assert nerfacto.pipeline.datamanager.train_num_rays_per_batch == 16384
     assert nerfacto.mixed_precision == seathru.mixed_precision and nerfacto.optimizers == seathru.optimizers
+
+
+def test_trim_mesh_names_a_missing_or_unusable_input(run, tmp_path, capsys):
+    """Bad input to ``seathru-trim-mesh`` gets one line naming the file, and exit status 2."""
+    from seathru_nerfstudio.mesh_trim import TrimMeshCommand
+
+    text_mesh = tmp_path / "mesh.obj"
+    text_mesh.write_text("v 0 0 0\n")
+    cases = [
+        (TrimMeshCommand(load_config=tmp_path / "missing.yml", mesh=text_mesh), "missing.yml"),
+        (TrimMeshCommand(load_config=run["config"], mesh=tmp_path / "missing.ply"), "missing.ply"),
+        (TrimMeshCommand(load_config=run["config"], mesh=text_mesh), "mesh.obj"),
+        (TrimMeshCommand(load_config=run["config"], mesh=text_mesh.with_suffix(".ply"), margin=-1.0), "--margin"),
+    ]
+    text_mesh.with_suffix(".ply").write_text("ply\n")
+    for command, named in cases:
+        assert command.main() == 2
+        lines = capsys.readouterr().err.strip().splitlines()
+        assert len(lines) == 1 and named in lines[0], lines
