@@ -1,31 +1,41 @@
-"""The backscatter density where the object field enters, bounded by the darkest SfM observations.
+"""The medium where the object field enters: its densities bounded by the SfM observations.
 
 A surface at range ``z`` (world units) shows, per channel,
 
-    I = J e^{-β_D z} + B∞ (1 - e^{-β_B z}),   J >= 0,
+    I = J e^{-β_D z} + B∞ (1 - e^{-β_B z}),   0 <= J <= 1,
 
-so no observation lies below the backscatter: ``B∞ (1 - e^{-β_B z}) <= I``, that is
+``J`` being the object colour, a sigmoid. Both ends of its range bound a density:
 
-    β_B <= b(I, z) = -ln(1 - I / B∞) / z      (no bound where I >= B∞).
+* ``J >= 0``: no observation lies below the backscatter, ``B∞ (1 - e^{-β_B z}) <= I``, so
 
-Each SfM observation gives such a bound; the darkest surfaces at every range give the tightest.
-Sea-thru (Akkaynak & Treibitz, CVPR 2019, sec. 4.3) reads the backscatter from the darkest 1% of
-the pixels; here the same 1% is taken of the per-observation bounds ``b``, so that noise on a
-few dark pixels does not set it.
+      β_B <= b(I, z) = -ln(1 - I / B∞) / z      (no bound where I >= B∞);
+
+* ``J <= 1``: the attenuated colour can reach what is left above the backscatter,
+  ``e^{-β_D z} >= I - B∞ (1 - e^{-β_B z})``, so
+
+      β_D <= d(I, z) = -ln(I - B∞ (1 - e^{-β_B z})) / z      (no bound where I <= the backscatter).
+
+Each SfM observation gives both bounds; the darkest surfaces at every range give the tightest
+``b``, the brightest the tightest ``d``. Sea-thru (Akkaynak & Treibitz, CVPR 2019, sec. 4.3) reads
+the backscatter from the darkest 1% of the pixels; here the same 1% is taken of the
+per-observation bounds, so that noise on a few pixels does not set them. ``β_B`` is bounded
+first, then ``β_D`` under the bounded backscatter.
 
 Why this exists: the first stage learns ``B∞`` from an empty scene while the densities wait at
-their start (``medium_init_optical_depth``). Where that start puts the backscatter above the
-darker surfaces, the image asks for a negative object colour; the colour's sigmoid saturates at 0
-within about ten steps of the object field's entry and never returns (its gradient vanishes, and
-with it the attenuation's). Path-traced coastal water (``seathru-pathtrace``, β_B 0.31, 0.14,
-0.08 /m) started at 0.45 /m in every channel, and the object colour was dead by step 210
-(docs/history.md, 2026-11-27). The bound is applied once, at the end of the first stage, under the
-veiling light learned there, and only lowers a density.
-
-The attenuation keeps its start: nothing bounds it from the darkest pixels, and a start too low
-is as harmful as one too high (surfaces rendered brighter than the image lose their density at
-entry). A start from the medium fit under the first stage's veil was measured and reverted
-(docs/history.md, 2026-11-27: on a short first stage the veil has not settled and the fit is wrong).
+their start (``medium_init_optical_depth``, an optical depth of 3 at the mean SfM range). Where that
+start puts the backscatter above the darker surfaces, the image asks for a negative object colour;
+the colour's sigmoid saturates at 0 within about ten steps of the object field's entry and never
+returns (its gradient vanishes, and with it the attenuation's). Path-traced coastal water
+(``seathru-pathtrace``, β_B 0.31, 0.14, 0.08 /m) started at 0.45 /m in every channel, and the object
+colour was dead by step 210 (docs/history.md, 2026-11-27). Where the start attenuates more than
+the brightest surfaces allow, the colour saturates at 1 instead, and the object density gives way
+to the veiling light behind it: clear air started at 0.45 /m, where nothing attenuates, and its
+surfaces rendered half transparent (object opacity 0.54 at step 400, J 3.8 dB). The bounds are
+applied once, at the end of the first stage, under the veiling light learned there, and only lower
+a density. On the path-traced presets the attenuation bound lies at or above the single-scattering
+truth except in turbid water, where multiple scattering brightens the far surfaces (0.44, 0.25,
+0.37 against 0.55, 0.35, 0.50 /m); on the formula-drawn water demo it lies above the truth
+(1.62, 1.48, 1.13 against 1.3, 1.2, 0.9).
 
 Units: ranges in world units, densities per world unit, colours linear.
 """
@@ -47,7 +57,7 @@ DENSITY_FLOOR = 1e-6
 """The cap never goes below this (per world unit): a softplus parameter cannot hold 0 exactly."""
 
 DARK_QUANTILE = 0.01
-"""Sea-thru's share of darkest pixels: the bound is this quantile of the per-observation bounds."""
+"""Sea-thru's share of darkest pixels: each bound is this quantile of the per-observation bounds."""
 
 
 def backscatter_density_bounds(
@@ -70,17 +80,53 @@ def backscatter_density_cap(
     """The ``quantile`` of :func:`backscatter_density_bounds` per channel over the observations
     with finite positive range and finite colour (``inf`` where none, or where the quantile falls
     among the unbounded ones). Per world unit."""
-    usable = torch.isfinite(ranges) & (ranges > 0) & torch.isfinite(colours).all(dim=-1)
+    usable = usable_observations(ranges, colours)
     if not bool(usable.any()):
         return torch.full_like(veil, float("inf"))
     bounds = backscatter_density_bounds(ranges[usable], colours[usable], veil)
     return torch.quantile(bounds, quantile, dim=0, interpolation="lower")
 
 
+def attenuation_bounds(
+    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "3"], beta_b: Float[Tensor, "3"]
+) -> Float[Tensor, "N 3"]:
+    """Per observation and channel, the largest ``β_D`` (per world unit) at which an object colour
+    ``J <= 1`` still reaches the colour left above the backscatter: ``-ln(I - B∞ (1 - e^{-β_B z})) / z``.
+    ``inf`` where the backscatter alone reaches ``I`` (any attenuation fits), ``0`` where what is
+    left is 1 or more; ``ranges > 0``, ``beta_b`` per world unit."""
+    direct = colours - veil * -torch.expm1(-beta_b * ranges[:, None])
+    bounded = direct > 0
+    safe = torch.where(bounded, direct.clamp(max=1.0), torch.ones_like(direct))  # log(0) never taken
+    bound = -torch.log(safe) / ranges[:, None]
+    return torch.where(bounded, bound, torch.full_like(bound, float("inf")))
+
+
+def usable_observations(ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
+    """The observations with a finite positive range and a finite colour."""
+    return torch.isfinite(ranges) & (ranges > 0) & torch.isfinite(colours).all(dim=-1)
+
+
+def attenuation_cap(
+    ranges: Float[Tensor, "N"],
+    colours: Float[Tensor, "N 3"],
+    veil: Float[Tensor, "3"],
+    beta_b: Float[Tensor, "3"],
+    quantile: float = DARK_QUANTILE,
+) -> Float[Tensor, "3"]:
+    """The ``quantile`` of :func:`attenuation_bounds` per channel over the usable observations
+    (``inf`` where none). Per world unit."""
+    usable = usable_observations(ranges, colours)
+    if not bool(usable.any()):
+        return torch.full_like(veil, float("inf"))
+    bounds = attenuation_bounds(ranges[usable], colours[usable], veil, beta_b)
+    return torch.quantile(bounds, quantile, dim=0, interpolation="lower")
+
+
 def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None:
     """Callback at the end of the first stage: lower the scene medium's backscatter densities to
     :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
-    learned so far; a density already below stays. ``optimizers``: the trainer's, whose
+    learned so far, then its attenuations to :func:`attenuation_cap` under that backscatter; a
+    density already below its cap stays. ``optimizers``: the trainer's, whose
     ``medium_density`` Adam state is cleared where a density moved."""
     config = model.config
     if not TrainingPhases(config, step).ends(config.medium_first_steps) or config.medium_scope != "scene":
@@ -95,15 +141,18 @@ def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None
         densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale  # per world unit
         veil = torch.sigmoid(medium.rgb_logit.double())
     seen = torch.isfinite(torch.from_numpy(table.ranges))
-    cap = backscatter_density_cap(torch.from_numpy(table.ranges)[seen], torch.from_numpy(table.colours)[seen], veil)
-    beta_b = torch.minimum(densities[3:], cap.clamp_min(DENSITY_FLOOR))
-    if bool((beta_b >= densities[3:]).all()):
+    ranges, colours = torch.from_numpy(table.ranges)[seen], torch.from_numpy(table.colours)[seen]
+    beta_b = torch.minimum(densities[3:], backscatter_density_cap(ranges, colours, veil).clamp_min(DENSITY_FLOOR))
+    beta_d = torch.minimum(densities[:3], attenuation_cap(ranges, colours, veil, beta_b).clamp_min(DENSITY_FLOOR))
+    capped = torch.cat([beta_d, beta_b])
+    if bool((capped >= densities).all()):
         return
-    medium.set_densities(beta_b / model.world_scale, first=3)
+    medium.set_densities(capped / model.world_scale)
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
     CONSOLE.print(
-        f"[bold]seathru step {step}: backscatter density capped by the darkest 1% of {table.num_observations} SfM "
-        f"observations under B_inf {show(veil)}: beta_B {show(densities[3:])} -> {show(beta_b)} /m"
+        f"[bold]seathru step {step}: densities bounded by the darkest and brightest 1% of {table.num_observations} SfM "
+        f"observations under B_inf {show(veil)}: beta_D {show(densities[:3])} -> {show(beta_d)}, "
+        f"beta_B {show(densities[3:])} -> {show(beta_b)} /m"
     )
