@@ -5,9 +5,8 @@ per sample. Three variants share one interface, ``medium(directions) -> MediumOu
 
 * :class:`MediumField`, the paper's MLP of the ray direction (``per-ray``): water whose
   colour and turbidity vary with the viewing direction, e.g. towards the surface;
-* :class:`SceneMedium`, learned constants (``per-scene``): one homogeneous water body, which
-  is what the SeaThru image formation model assumes, lit from one side (its veiling light a
-  sigmoid of a logit linear in the ray direction);
+* :class:`SceneMedium`, nine learned constants (``per-scene``): one homogeneous water
+  body, which is what the SeaThru image formation model assumes;
 * :class:`FixedMedium`, given constants (an oracle for experiments: the true medium).
 
 Each of them has six densities; :func:`tie` makes the simpler medium models of
@@ -170,19 +169,8 @@ def _expand(values: Tensor, directions: Tensor) -> Tensor:
 
 
 class SceneMedium(nn.Module):
-    """One homogeneous water body: ``sigma_attn`` and ``sigma_bs`` are six learned constants
-    (softplus, as the MLP's heads), and the veiling light is a sigmoid of a logit linear in the
-    ray direction ``d`` (unit, scene frame): ``c_med(d) = sigmoid(a + W d)``, twelve constants.
-
-    Why the veiling light depends on the direction: light falls into real water from above, so
-    the open water is brighter looking up than looking across (path-traced coastal water,
-    ``seathru-pathtrace``: the blue open water is 0.46 on average, and a logit linear in ``d``
-    explains 72% of its variance over the views' open-water pixels, 67% in green, 39% in red). A
-    constant veil leaves that variation to the object field, which fills the open water to paint
-    it, and the constant drifts up with it (blue 0.36 -> 0.61 on coastal; docs/history.md). Its
-    densities stay constant: the medium is homogeneous, only its light is not (the paper's
-    per-ray medium, :class:`MediumField`, lets every ray have its own water and loses the
-    decomposition). ``W`` starts at 0, so a veil that is the same everywhere stays constant.
+    """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
+    learned constants, the same for every ray (sigmoid and softplus, as the MLP's heads).
 
     Cheaper than :class:`MediumField` and without its freedom to give every ray its own
     water, which on a homogeneous scene lets the medium explain scene content per ray.
@@ -192,26 +180,13 @@ class SceneMedium(nn.Module):
         self, init_density: float | Sequence[float] = 0.5, init_rgb: float | Sequence[float] = 0.5
     ) -> None:
         """``init_density``: one value for all six densities, or ``sigma_attn`` then ``sigma_bs``
-        per channel (per scene unit, > 0); ``init_rgb``: one value or three, in (0, 1): the veil in
-        every direction."""
+        per channel (per scene unit, > 0); ``init_rgb``: one value or three, in (0, 1)."""
         super().__init__()
         rgb = torch.as_tensor(init_rgb, dtype=torch.float64).expand(3)
         self.rgb_logit = nn.Parameter(torch.logit(rgb).float().clone())
-        self.rgb_direction = nn.Parameter(torch.zeros(3, 3))
-        """``W``: row ``i`` is the change of the veil's logit per unit of the direction's component ``i``."""
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
         self.density_raw = nn.Parameter(torch.zeros(6))
         self.set_densities(densities)
-
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # type: ignore[no-untyped-def]
-        # Checkpoints from before the directional veil hold a constant one: W = 0.
-        state_dict.setdefault(prefix + "rgb_direction", torch.zeros(3, 3))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-    def veil(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-        """``c_med(d) = sigmoid(a + W d)`` in the dtype of ``directions`` (unit, scene frame), linear RGB."""
-        logit = self.rgb_logit.to(directions) + directions @ self.rgb_direction.to(directions)
-        return torch.sigmoid(logit)
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene
@@ -228,7 +203,7 @@ class SceneMedium(nn.Module):
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())
         return MediumOutputs(
-            rgb=self.veil(directions.float()),
+            rgb=_expand(torch.sigmoid(self.rgb_logit.float()), directions),
             sigma_attn=_expand(densities[:3], directions),
             sigma_bs=_expand(densities[3:], directions),
         )
@@ -255,14 +230,3 @@ class FixedMedium(nn.Module):
             sigma_attn=_expand(self.sigma_attn, directions),
             sigma_bs=_expand(self.sigma_bs, directions),
         )
-
-
-def observed_veil(medium: nn.Module, directions: "Tensor | None") -> Tensor:
-    """The veiling light (float64, linear RGB) that ``medium`` renders along ``directions``
-    (``(..., 3)`` unit, scene frame: e.g. each SfM observation's line of sight), ``(..., 3)``;
-    one ``(3,)`` colour where the directions are unknown (``None``) or the medium's veil is
-    constant (a :class:`SceneMedium` without :meth:`SceneMedium.veil`: its ``rgb_logit`` alone)."""
-    with torch.no_grad():
-        if directions is not None and hasattr(medium, "veil"):
-            return medium.veil(directions.double())
-        return torch.sigmoid(medium.rgb_logit.double())

@@ -40,7 +40,7 @@ from torch import Tensor
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio.medium_field import observed_veil, tie_matrix
+from seathru_nerfstudio.medium_field import tie_matrix
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.oracles import replace_with_truth
 from seathru_nerfstudio.phases import TrainingPhases
@@ -77,7 +77,7 @@ def best_colours(
     observed: Float[Tensor, "P V"],
     beta_d: Float[Tensor, "3"],
     beta_b: Float[Tensor, "3"],
-    veil: Float[Tensor, "*PV 3"],
+    veil: Float[Tensor, "3"],
 ) -> tuple[Float[Tensor, "P 3"], Float[Tensor, "P V 3"]]:
     """Per point the least-squares object colour ``J ≥ 0``, and the predicted colours.
 
@@ -212,7 +212,7 @@ def newton_polished(loss_of: Callable[[Tensor], Tensor], start: Float[Tensor, "K
 def fit_densities(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
-    veil: Float[Tensor, "*PV 3"],
+    veil: Float[Tensor, "3"],
     start_attenuation: Float[Tensor, "3"],
     start_backscatter: Float[Tensor, "3"],
     max_iterations: int = 200,
@@ -245,8 +245,6 @@ def fit_densities(
     z = torch.where(observed, ranges, torch.zeros_like(ranges)).double()
     rgb = torch.where(observed[..., None], colours, torch.zeros_like(colours)).double()
     veil = veil.detach().double()
-    if veil.dim() > 1:  # one veil per observation (its line of sight): none where there is no observation
-        veil = torch.where(observed[..., None], veil, torch.zeros_like(veil))
     tied = tie_matrix(tie)
     start_log = torch.log(torch.cat([start_attenuation, start_backscatter]).detach().double())
     observed_weight = weight
@@ -331,8 +329,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     medium = model.medium_field
     with torch.no_grad():
         densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale
-    directions = table.directions()
-    veil = observed_veil(medium, None if directions is None else torch.from_numpy(directions))  # (P, V, 3) or (3,)
+        veil = torch.sigmoid(medium.rgb_logit.double())
     fit = fit_densities(
         torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:],
         tie=model.medium_model,
@@ -361,7 +358,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     CONSOLE.print(
         f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({model.medium_model} tie)[/] "
         f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
-        f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil.reshape(-1, 3).mean(dim=0))}; "
+        f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
         f"standard error of ln beta_D {show(fit.attenuation_log_error)}"
         + (f", kept the trained values of channel(s) {uncertain.nonzero().flatten().tolist()}" if uncertain.any() else "")
     )

@@ -9,9 +9,7 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   (``seathru-synth`` scenes: ``ground_truth/medium.json`` has ``"world_units": "m"``; any
   capture: ``"world_units": "m"`` in ``transforms.json``), else ``"world unit (scale
   unknown)"``: a COLMAP reconstruction has no scale, and its densities are per COLMAP unit.
-* ``B_inf``: the veiling light (backscatter at infinity), linear RGB; it depends on the view direction
-  (a scene medium's too: :class:`~seathru_nerfstudio.medium_field.SceneMedium`), so it is the mean over
-  the training cameras' optical axes where they are given.
+* ``B_inf``: the veiling light (backscatter at infinity), linear RGB.
 * ``attenuation_length``: ``1 / beta_D``, the distance over which the direct light falls to
   ``1/e`` (world units).
 * ``medium_model``: the model in use (``auto``'s choice once it has decided; ``seathru``
@@ -156,9 +154,6 @@ def medium_report(
             {"direction": _numbers(grid[i]), **{key: _numbers(table[key][i]) for key in table}}
             for i in range(grid.shape[0])
         ]
-    elif view_directions is not None:  # the densities are constant; the veiling light depends on the direction
-        values = {key: value.mean(dim=0) for key, value in _per_world(model, view_directions).items()}
-        report["average_over"] = "training cameras' optical axes"
     else:
         values = {key: value[0] for key, value in _per_world(model, torch.tensor([[0.0, 0.0, -1.0]])).items()}
     report["beta_D"] = _numbers(values["beta_D"])

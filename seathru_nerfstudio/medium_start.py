@@ -50,7 +50,6 @@ from torch import Tensor
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio.medium_field import observed_veil
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.phases import TrainingPhases
 
@@ -62,7 +61,7 @@ DARK_QUANTILE = 0.01
 
 
 def backscatter_density_bounds(
-    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "*N 3"]
+    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "3"]
 ) -> Float[Tensor, "N 3"]:
     """Per observation and channel, the largest ``β_B`` (per world unit) that keeps the backscatter
     at or below the observed colour: ``-ln(1 - I / B∞) / z``, computed as ``-log1p(-I / B∞) / z``.
@@ -76,20 +75,20 @@ def backscatter_density_bounds(
 
 
 def backscatter_density_cap(
-    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "*N 3"], quantile: float = DARK_QUANTILE
+    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "3"], quantile: float = DARK_QUANTILE
 ) -> Float[Tensor, "3"]:
     """The ``quantile`` of :func:`backscatter_density_bounds` per channel over the observations
     with finite positive range and finite colour (``inf`` where none, or where the quantile falls
     among the unbounded ones). Per world unit."""
     usable = usable_observations(ranges, colours)
     if not bool(usable.any()):
-        return torch.full((3,), float("inf"), dtype=colours.dtype)
-    bounds = backscatter_density_bounds(ranges[usable], colours[usable], _of_usable(veil, usable))
+        return torch.full_like(veil, float("inf"))
+    bounds = backscatter_density_bounds(ranges[usable], colours[usable], veil)
     return torch.quantile(bounds, quantile, dim=0, interpolation="lower")
 
 
 def attenuation_bounds(
-    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "*N 3"], beta_b: Float[Tensor, "3"]
+    ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"], veil: Float[Tensor, "3"], beta_b: Float[Tensor, "3"]
 ) -> Float[Tensor, "N 3"]:
     """Per observation and channel, the largest ``β_D`` (per world unit) at which an object colour
     ``J <= 1`` still reaches the colour left above the backscatter: ``-ln(I - B∞ (1 - e^{-β_B z})) / z``.
@@ -102,11 +101,6 @@ def attenuation_bounds(
     return torch.where(bounded, bound, torch.full_like(bound, float("inf")))
 
 
-def _of_usable(veil: Float[Tensor, "*N 3"], usable: Float[Tensor, "N"]) -> Float[Tensor, "*M 3"]:
-    """A per-observation veil ``(N, 3)`` restricted to the usable observations; one ``(3,)`` as it is."""
-    return veil[usable] if veil.dim() > 1 else veil
-
-
 def usable_observations(ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"]) -> Float[Tensor, "N"]:
     """The observations with a finite positive range and a finite colour."""
     return torch.isfinite(ranges) & (ranges > 0) & torch.isfinite(colours).all(dim=-1)
@@ -115,7 +109,7 @@ def usable_observations(ranges: Float[Tensor, "N"], colours: Float[Tensor, "N 3"
 def attenuation_cap(
     ranges: Float[Tensor, "N"],
     colours: Float[Tensor, "N 3"],
-    veil: Float[Tensor, "*N 3"],
+    veil: Float[Tensor, "3"],
     beta_b: Float[Tensor, "3"],
     quantile: float = DARK_QUANTILE,
 ) -> Float[Tensor, "3"]:
@@ -123,12 +117,12 @@ def attenuation_cap(
     (``inf`` where none). Per world unit."""
     usable = usable_observations(ranges, colours)
     if not bool(usable.any()):
-        return torch.full((3,), float("inf"), dtype=colours.dtype)
-    bounds = attenuation_bounds(ranges[usable], colours[usable], _of_usable(veil, usable), beta_b)
+        return torch.full_like(veil, float("inf"))
+    bounds = attenuation_bounds(ranges[usable], colours[usable], veil, beta_b)
     return torch.quantile(bounds, quantile, dim=0, interpolation="lower")
 
 
-def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
+def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None:
     """Callback at the end of the first stage: lower the scene medium's backscatter densities to
     :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
     learned so far, then its attenuations to :func:`attenuation_cap` under that backscatter; a
@@ -145,10 +139,9 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
     medium = model.medium_field
     with torch.no_grad():
         densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale  # per world unit
-    directions = table.directions()
+        veil = torch.sigmoid(medium.rgb_logit.double())
     seen = torch.isfinite(torch.from_numpy(table.ranges))
     ranges, colours = torch.from_numpy(table.ranges)[seen], torch.from_numpy(table.colours)[seen]
-    veil = observed_veil(medium, None if directions is None else torch.from_numpy(directions)[seen])  # (N, 3) or (3,)
     beta_b = torch.minimum(densities[3:], backscatter_density_cap(ranges, colours, veil).clamp_min(DENSITY_FLOOR))
     beta_d = torch.minimum(densities[:3], attenuation_cap(ranges, colours, veil, beta_b).clamp_min(DENSITY_FLOOR))
     capped = torch.cat([beta_d, beta_b])
@@ -160,6 +153,6 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
     CONSOLE.print(
         f"[bold]seathru step {step}: densities bounded by the darkest and brightest 1% of {table.num_observations} SfM "
-        f"observations under B_inf {show(veil.reshape(-1, 3).mean(dim=0))}: beta_D {show(densities[:3])} -> {show(beta_d)}, "
+        f"observations under B_inf {show(veil)}: beta_D {show(densities[:3])} -> {show(beta_d)}, "
         f"beta_B {show(densities[3:])} -> {show(beta_b)} /m"
     )

@@ -24,7 +24,7 @@ same z-depth (the surface taken as locally facing the camera), by +2, +1, 0%, +1
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -40,18 +40,6 @@ class SfmObservations:
     """(P, V) distance from view ``v``'s camera centre to point ``p``; NaN where not observed."""
     colours: npt.NDArray[np.float64]
     """(P, V, 3) linear RGB at the point's projection in view ``v``; NaN where not observed."""
-    points: Optional[npt.NDArray[np.float64]] = None
-    """(P, 3) the points (world units, the cameras' frame); ``None``: not recorded."""
-    centres: Optional[npt.NDArray[np.float64]] = None
-    """(V, 3) the views' camera centres (same frame); ``None``: not recorded."""
-
-    def directions(self) -> Optional[npt.NDArray[np.float64]]:
-        """(P, V, 3) unit direction from view ``v``'s centre to point ``p``, in the cameras' frame
-        (nerfstudio's scene frame: the rays' directions); ``None`` without points and centres."""
-        if self.points is None or self.centres is None:
-            return None
-        offset = self.points[:, None, :] - self.centres[None, :, :]
-        return offset / np.maximum(np.linalg.norm(offset, axis=-1, keepdims=True), 1e-300)
 
     @property
     def num_points(self) -> int:
@@ -172,4 +160,4 @@ def sfm_observations(
         ranges[seen, j] = np.linalg.norm(xyz[seen] - c2w[j, :, 3], axis=-1)
         colours[seen, j] = _bilinear(image, pu[seen], pv[seen])
     multi = np.isfinite(ranges).sum(axis=1) >= 2  # one view alone says nothing about the medium
-    return SfmObservations(ranges=ranges[multi], colours=colours[multi], points=xyz[multi], centres=c2w[:, :, 3].copy())
+    return SfmObservations(ranges=ranges[multi], colours=colours[multi])
