@@ -122,7 +122,7 @@ def attenuation_cap(
     return torch.quantile(bounds, quantile, dim=0, interpolation="lower")
 
 
-def apply_backscatter_cap(model: Any, step: int, optimizers: Any = None) -> None:
+def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
     """Callback at the end of the first stage: lower the scene medium's backscatter densities to
     :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
     learned so far, then its attenuations to :func:`attenuation_cap` under that backscatter; a

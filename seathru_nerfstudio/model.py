@@ -46,7 +46,7 @@ from seathru_nerfstudio.medium_field import (
     clear_medium,
     tie,
 )
-from seathru_nerfstudio.medium_start import apply_backscatter_cap
+from seathru_nerfstudio.medium_start import apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
@@ -166,7 +166,7 @@ class SeathruModel(NerfactoModel):
             callbacks.append(TrainingCallback(after, self._print_diagnostics, update_every_num_iters=self.config.diagnostics_every))
         if self.auto_choice is not None:
             callbacks.append(TrainingCallback(after, lambda step: self.auto_choice.after_step(step, optimizers)))
-        callbacks.append(TrainingCallback(after, lambda step: apply_backscatter_cap(self, step, optimizers)))
+        callbacks.append(TrainingCallback(after, lambda step: apply_density_caps(self, step, optimizers)))
         if self.fits_medium:  # after auto's decision at the same step: the fit ties as the model chosen
             callbacks.append(TrainingCallback(after, lambda step: apply_medium_fit(self, step, optimizers)))
 

@@ -1,11 +1,17 @@
-"""The backscatter density bounded by the darkest SfM observations (``medium_start``)."""
+"""The densities at entry, bounded by the darkest and brightest SfM observations (``medium_start``)."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
-from seathru_nerfstudio.medium_start import apply_backscatter_cap, backscatter_density_bounds, backscatter_density_cap
+from seathru_nerfstudio.medium_start import (
+    apply_density_caps,
+    attenuation_bounds,
+    attenuation_cap,
+    backscatter_density_bounds,
+    backscatter_density_cap,
+)
 from tiny_training import tiny_model
 
 
@@ -52,9 +58,48 @@ def test_the_cap_is_the_darkest_percent_of_the_bounds_and_skips_unusable_observa
     assert torch.isinf(backscatter_density_cap(spoiled[:20], dark[:20], veil)).all()
 
 
-def test_the_cap_lowers_the_backscatter_at_the_end_of_the_first_stage_only(capsys):
-    """The callback acts at the step that ends the first stage: each ``β_B`` above the cap (per metre,
-    scene unit × scale) comes down to it, one below stays, ``β_D`` is untouched; other steps, a ray
+def test_a_white_surface_bounds_the_attenuation_at_its_true_value_and_a_darker_one_above():
+    """``I = e^{-β_D z} + B∞ (1 - e^{-β_B z})`` (``J = 1``) gives back ``β_D``; ``J < 1`` a larger bound;
+    ``I`` at or below the backscatter no bound (``inf``); 1 or more left above it the bound 0; never NaN."""
+    veil = torch.tensor([0.05, 0.2, 0.4], dtype=torch.float64)
+    beta_b, beta_d = torch.tensor([0.3, 0.15, 0.08], dtype=torch.float64), torch.tensor([0.35, 0.2, 0.1], dtype=torch.float64)
+    z = torch.tensor([0.5, 2.0, 7.0, 30.0], dtype=torch.float64)
+    backscatter = veil * -torch.expm1(-beta_b * z[:, None])
+    white = torch.exp(-beta_d * z[:, None]) + backscatter
+    torch.testing.assert_close(attenuation_bounds(z, white, veil, beta_b), beta_d.expand(4, 3), rtol=1e-10, atol=0)
+    grey = 0.5 * torch.exp(-beta_d * z[:, None]) + backscatter
+    torch.testing.assert_close(attenuation_bounds(z, grey, veil, beta_b), beta_d + np.log(2.0) / z[:, None], rtol=1e-10, atol=0)
+    edge = torch.stack([backscatter[1], backscatter[1] - 0.01, backscatter[1] + 1.0, backscatter[1] + 2.0])
+    bounds = attenuation_bounds(torch.full((4,), 2.0, dtype=torch.float64), edge, veil, beta_b)
+    assert torch.isinf(bounds[:2]).all() and (bounds[2:] >= 0).all() and (bounds[2:] < 1e-12).all()  # 0 up to rounding
+    half = attenuation_bounds(z[:1], torch.full((1, 3), 0.5, dtype=torch.float32), torch.zeros(3), torch.zeros(3))
+    torch.testing.assert_close(half.to(torch.float64), torch.full((1, 3), np.log(2.0) / 0.5, dtype=torch.float64), rtol=1e-6, atol=0)
+
+
+def test_the_attenuation_cap_is_the_brightest_percent_and_lies_at_or_above_the_truth():
+    """Surfaces from black to white at every range: the 1% cap lies at or above the true ``β_D`` (a white
+    surface reaches it exactly) and below the median bound; unusable observations are left out."""
+    rng = np.random.default_rng(1)
+    veil = torch.tensor([0.05, 0.2, 0.4], dtype=torch.float64)
+    beta_b, beta_d = torch.tensor([0.3, 0.15, 0.08], dtype=torch.float64), torch.tensor([0.35, 0.2, 0.1], dtype=torch.float64)
+    n = 4000
+    z = torch.from_numpy(rng.uniform(1.5, 12.0, n))
+    albedo = torch.from_numpy(1.0 - rng.uniform(0.0, 1.0, (n, 3)) ** 2)  # a few near-white surfaces at every range
+    colours = albedo * torch.exp(-beta_d * z[:, None]) + veil * -torch.expm1(-beta_b * z[:, None])
+    cap = attenuation_cap(z, colours, veil, beta_b)
+    assert (cap >= beta_d).all() and (cap < 1.1 * beta_d).all()
+    assert (cap < attenuation_bounds(z, colours, veil, beta_b).median(dim=0).values).all()
+    spoiled = z.clone()
+    spoiled[:10] = float("nan")
+    bright = colours.clone()
+    bright[:10] = 1.0  # these would set the cap at 0 if they counted
+    torch.testing.assert_close(attenuation_cap(spoiled, bright, veil, beta_b), attenuation_cap(z[10:], colours[10:], veil, beta_b))
+    assert torch.isinf(attenuation_cap(spoiled[:10], bright[:10], veil, beta_b)).all()
+
+
+def test_the_caps_lower_the_densities_at_the_end_of_the_first_stage_only(capsys):
+    """The callback acts at the step that ends the first stage: each density above its cap (per
+    metre, scene unit × scale) comes down to it, near its truth, one below stays; other steps, a ray
     medium, clear air (``none``), or no observations change nothing."""
     from seathru_nerfstudio.data.sfm_observations import SfmObservations
     from seathru_nerfstudio.metadata_keys import SCALE_KEY, SFM_OBSERVATIONS_KEY
@@ -65,30 +110,32 @@ def test_the_cap_lowers_the_backscatter_at_the_end_of_the_first_stage_only(capsy
     metadata = {SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}
     model = tiny_model(metadata=metadata, medium_first_steps=5, medium_fit_step=10)
     veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
-    true_b = np.array([0.2, 5.0, 0.4])  # per metre; the start (per metre) lies between 0.4 and 5.0
+    true_d, true_b = np.array([0.3, 5.0, 0.6]), np.array([0.2, 5.0, 0.4])  # per metre, either side of the start
     start = torch.nn.functional.softplus(model.medium_field.density_raw.detach().double()) * 2.0
-    assert float(start[4]) < 5.0 and float(start[5]) > 0.4
-    albedo = rng.uniform(0.0, 0.5, (300, 1, 3)) ** 3
-    table.colours[...] = albedo * np.exp(-ranges[..., None]) + veil * -np.expm1(-true_b * ranges[..., None])
+    assert (start[[0, 2, 3, 5]] > 0.6).all() and (start[[1, 4]] < 5.0).all()
+    spread = rng.uniform(0.0, 1.0, (300, 1, 3)) ** 3 / 2
+    albedo = np.where(rng.uniform(0.0, 1.0, (300, 1, 3)) < 0.5, spread, 1.0 - spread)  # near black and near white
+    table.colours[...] = albedo * np.exp(-true_d * ranges[..., None]) + veil * -np.expm1(-true_b * ranges[..., None])
     before = model.medium_field.density_raw.detach().clone()
-    apply_backscatter_cap(model, 3)
+    apply_density_caps(model, 3)
     assert torch.equal(model.medium_field.density_raw.detach(), before)
-    apply_backscatter_cap(model, 4)
+    apply_density_caps(model, 4)
     after = torch.nn.functional.softplus(model.medium_field.density_raw.detach().double()) * 2.0
-    assert torch.equal(model.medium_field.density_raw.detach()[:3], before[:3])
-    assert float(after[4]) == float(start[4])  # below its cap: stays
-    for channel in (3, 5):  # capped near the black surfaces' density
-        assert true_b[channel - 3] <= float(after[channel]) < min(float(start[channel]), 1.5 * true_b[channel - 3])
-    assert "capped" in capsys.readouterr().out
+    truth = np.concatenate([true_d, true_b])
+    for index in (1, 4):  # below its cap: stays
+        assert float(after[index]) == float(start[index])
+    for index in (0, 2, 3, 5):  # capped near the white (attenuation) or black (backscatter) surfaces' density
+        assert truth[index] <= float(after[index]) < min(float(start[index]), 1.5 * truth[index]), (index, after)
+    assert "bounded" in capsys.readouterr().out
     ray = tiny_model(metadata=metadata, medium_first_steps=5, medium_fit_step=10, medium_scope="ray")
     state = {k: v.clone() for k, v in ray.state_dict().items()}
-    apply_backscatter_cap(ray, 4)
+    apply_density_caps(ray, 4)
     assert all(torch.equal(state[k], v) for k, v in ray.state_dict().items())
     clear = tiny_model(metadata=metadata, medium_first_steps=5, medium_fit_step=10, medium_model="none")
     clear_before = clear.medium_field.density_raw.detach().clone()
-    apply_backscatter_cap(clear, 4)
+    apply_density_caps(clear, 4)
     assert torch.equal(clear.medium_field.density_raw.detach(), clear_before)
     bare = tiny_model(metadata={SCALE_KEY: 2.0}, medium_first_steps=5, medium_fit_step=10)
     bare_before = bare.medium_field.density_raw.detach().clone()
-    apply_backscatter_cap(bare, 4)
+    apply_density_caps(bare, 4)
     assert torch.equal(bare.medium_field.density_raw.detach(), bare_before)
