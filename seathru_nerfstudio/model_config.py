@@ -83,7 +83,7 @@ class SeathruModelConfig(NerfactoModelConfig):
     medium_sh_levels: int = 4
     """Spherical-harmonic levels of the medium MLP's direction encoding."""
     medium_init_optical_depth: float = 3.0
-    """Start the densities so that the mean SfM range is this many attenuation lengths away (0: ``research.medium_init_density``); the backscatter's is capped when the object field enters (``medium_start``)."""
+    """Start the densities so that the mean SfM range is this many attenuation lengths away (0: ``research.medium_init_density``); both are capped by the SfM observations when the object field enters (``medium_start``)."""
     object_view_dependent: bool = False
     """View-dependent object colour (nerfacto); off: Lambertian, as the official code."""
     depth_loss_mult: float = 1e-2

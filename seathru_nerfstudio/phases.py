@@ -11,8 +11,8 @@ The timeline of a medium model (defaults in brackets)::
 
 * ``medium_first_steps`` (200): the object colour waits; the object *density* learns from the SfM
   depths and the empty-space prior; every ray shows the veiling light, which settles at the
-  water colour. At its end the backscatter density is capped by the darkest SfM observations
-  (:mod:`seathru_nerfstudio.medium_start`).
+  water colour. At its end the backscatter density is capped by the darkest SfM observations and
+  the attenuation by the brightest (:mod:`seathru_nerfstudio.medium_start`).
 * ``research.auto_decision_step`` (500, ``auto`` only): the simplest medium model the evidence of
   the last ``research.auto_evidence_steps`` allows (:mod:`seathru_nerfstudio.medium_choice`).
 * ``medium_fit_step`` (500, after the decision): the densities are fitted to the SfM observations
