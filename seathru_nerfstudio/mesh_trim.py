@@ -39,22 +39,8 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from seathru_nerfstudio.data.sfm_observations import bilinear
 from seathru_nerfstudio.export import OPACITY_THRESHOLD
-
-
-def bilinear(image: npt.NDArray[np.floating], u: npt.NDArray[np.floating], v: npt.NDArray[np.floating]) -> npt.NDArray[np.floating]:
-    """``image`` ``(H, W)`` interpolated at pixel coordinates ``(u, v)`` (pixel ``(r, c)``'s centre is at
-    ``(c + 0.5, r + 0.5)``), clamped to the outermost centres."""
-    height, width = image.shape
-    x = np.clip(u - 0.5, 0.0, width - 1.0)
-    y = np.clip(v - 0.5, 0.0, height - 1.0)
-    c0, r0 = np.minimum(np.floor(x).astype(np.int64), width - 2), np.minimum(np.floor(y).astype(np.int64), height - 2)
-    c0, r0 = np.maximum(c0, 0), np.maximum(r0, 0)
-    c1, r1 = np.minimum(c0 + 1, width - 1), np.minimum(r0 + 1, height - 1)
-    fx, fy = x - c0, y - r0
-    top = image[r0, c0] * (1 - fx) + image[r0, c1] * fx
-    bottom = image[r1, c0] * (1 - fx) + image[r1, c1] * fx
-    return top * (1 - fy) + bottom * fy
 
 
 def seen_through(

@@ -352,3 +352,20 @@ def test_tied_errors_add_the_channels_information_and_reduce_to_the_block_formul
     assert torch.equal(error_d, error_b)
     flat = torch.zeros(3, 1, 1, dtype=torch.float64)  # no curvature: undetermined
     assert torch.all(tied_log_density_errors(same, flat, tie_matrix("fog"), num_points=10)[0] == 2 * LOG_DENSITY_LIMIT)
+
+
+def test_bilinear_is_exact_on_a_plane_and_clamps_at_the_outermost_centres():
+    """On an image that is a plane in pixel coordinates (a colour per channel) bilinear interpolation
+    is exact between the pixel centres; beyond the outermost centres it holds their value; a 2-D
+    image works as a 3-D one."""
+    from seathru_nerfstudio.data.sfm_observations import bilinear
+
+    rows, cols = np.mgrid[0:5, 0:7]
+    plane = np.stack([1.0 + 0.5 * cols + 0.25 * rows, 2.0 - 0.1 * cols, 0.3 * rows], axis=-1)  # at pixel centres
+    u, v = np.array([0.5, 3.7, 6.5, 2.25]), np.array([0.5, 1.2, 4.5, 3.9])
+    x, y = u - 0.5, v - 0.5
+    expected = np.stack([1.0 + 0.5 * x + 0.25 * y, 2.0 - 0.1 * x, 0.3 * y], axis=-1)
+    np.testing.assert_allclose(bilinear(plane, u, v), expected, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(bilinear(plane[..., 0], u, v), expected[:, 0], rtol=0, atol=1e-12)
+    outside = bilinear(plane, np.array([-3.0, 40.0]), np.array([-1.0, 20.0]))
+    np.testing.assert_allclose(outside, plane[[0, 4], [0, 6]], rtol=0, atol=1e-12)

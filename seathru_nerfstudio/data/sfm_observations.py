@@ -50,16 +50,21 @@ class SfmObservations:
         return int(np.isfinite(self.ranges).sum())
 
 
-def _bilinear(image: npt.NDArray[np.floating], u: npt.NDArray[np.float64], v: npt.NDArray[np.float64]):
-    """Colours at continuous pixel coordinates (pixel centres at +0.5), inside the image."""
-    x, y = u - 0.5, v - 0.5
-    x0, y0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+def bilinear(image: npt.NDArray[np.floating], u: npt.NDArray[np.float64], v: npt.NDArray[np.float64]) -> npt.NDArray[np.floating]:
+    """``image`` ``(H, W, ...)`` interpolated bilinearly at continuous pixel coordinates ``(u, v)``
+    (pixel ``(r, c)``'s centre at ``(c + 0.5, r + 0.5)``), clamped to the outermost pixel centres."""
+    height, width = image.shape[:2]
+    x, y = np.clip(u - 0.5, 0.0, width - 1.0), np.clip(v - 0.5, 0.0, height - 1.0)
+    x0 = np.clip(np.floor(x).astype(int), 0, max(width - 2, 0))
+    y0 = np.clip(np.floor(y).astype(int), 0, max(height - 2, 0))
+    x1, y1 = np.minimum(x0 + 1, width - 1), np.minimum(y0 + 1, height - 1)
+    trailing = (1,) * (image.ndim - 2)
+    ax, ay = (x - x0).reshape(-1, *trailing), (y - y0).reshape(-1, *trailing)
     return (
         image[y0, x0] * (1 - ax) * (1 - ay)
-        + image[y0, x0 + 1] * ax * (1 - ay)
-        + image[y0 + 1, x0] * (1 - ax) * ay
-        + image[y0 + 1, x0 + 1] * ax * ay
+        + image[y0, x1] * ax * (1 - ay)
+        + image[y1, x0] * (1 - ax) * ay
+        + image[y1, x1] * ax * ay
     )
 
 
@@ -158,6 +163,6 @@ def sfm_observations(
         seen = np.nonzero(inside)[0][visible]
         image = np.asarray(images[j], dtype=np.float64)
         ranges[seen, j] = np.linalg.norm(xyz[seen] - c2w[j, :, 3], axis=-1)
-        colours[seen, j] = _bilinear(image, pu[seen], pv[seen])
+        colours[seen, j] = bilinear(image, pu[seen], pv[seen])
     multi = np.isfinite(ranges).sum(axis=1) >= 2  # one view alone says nothing about the medium
     return SfmObservations(ranges=ranges[multi], colours=colours[multi])
