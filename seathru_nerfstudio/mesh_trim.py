@@ -28,9 +28,7 @@ Units: scene units (nerfstudio's frame, as ``ns-export`` writes meshes), ranges 
 from __future__ import annotations
 
 import math
-import os
 import sys
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Optional
@@ -39,6 +37,7 @@ import numpy as np
 import numpy.typing as npt
 import torch
 
+from seathru_nerfstudio.data.io import atomic_file
 from seathru_nerfstudio.data.sfm_observations import bilinear
 from seathru_nerfstudio.export import OPACITY_THRESHOLD
 
@@ -146,17 +145,13 @@ class TrimMeshCommand:
         water = open_water_vertices(pipeline, np.asarray(mesh.vertices), margin)
         mesh.remove_vertices_by_mask(water.tolist())
         output = self.output or self.mesh.with_name(f"{self.mesh.stem}_trimmed.ply")
-        output.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(prefix=f".{output.stem}.partial-", suffix=".ply", dir=output.parent)
-        os.close(handle)
         try:
-            if not o3d.io.write_triangle_mesh(temporary, mesh):
-                print(f"seathru-trim-mesh: {output}: could not write", file=sys.stderr)
-                return 1
-            os.chmod(temporary, 0o644)
-            os.replace(temporary, output)
-        finally:
-            Path(temporary).unlink(missing_ok=True)
+            with atomic_file(output, suffix=".ply") as temporary:
+                if not o3d.io.write_triangle_mesh(str(temporary), mesh):
+                    raise OSError("open3d could not write it")
+        except OSError as error:
+            print(f"seathru-trim-mesh: {output}: {error}", file=sys.stderr)
+            return 1
         print(f"seathru-trim-mesh: removed {int(water.sum())} of {len(water)} vertices in open water; wrote {output}")
         return 0
 
