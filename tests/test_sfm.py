@@ -150,7 +150,7 @@ def test_sfm_points_become_sparse_depth_maps_that_match_the_scene(sfm_run) -> No
         true_range = np.load(scene / "ground_truth" / "depth" / f"{stem}.npy")[v, u]
         norm = np.sqrt(((u + 0.5 - K["cx"]) / K["fl_x"]) ** 2 + ((v + 0.5 - K["cy"]) / K["fl_y"]) ** 2 + 1.0)
         hit = np.isfinite(true_range)
-        ratios.append(sparse[v, u][hit] / 1000.0 * scale / (true_range[hit] / norm))
+        ratios.append(sparse[v, u][hit] / 1000.0 * scale / (true_range[hit] / norm[hit]))
     ratios = np.concatenate(ratios)
     # pixel-rounded point positions at depth edges make a few outliers; the bulk is exact
     # the message splits a failure into a global bias (the pose-fitted scale) and per-point spread
