@@ -3,15 +3,24 @@
 A run with ``auto`` trains the full ``seathru`` medium through a warm-up, then reads what it
 learned (:class:`MediumEvidence`, averaged over the last steps of the warm-up) and keeps the
 simplest model of :data:`~seathru_nerfstudio.medium_field.MEDIUM_MODELS` that the evidence
-allows (:func:`choose_medium_model`):
+allows (:func:`choose_medium_model`). Where the dataparser has SfM observations, the densities
+of the evidence are those of the medium fit (:func:`~seathru_nerfstudio.medium_fit.fit_densities`,
+six free, under the veiling light learned so far), not the warm-up's: the warm-up's backscatter
+density sits at the cap from the darkest pixels, and on the path-traced fog it was 0.03 /m
+against a fitted 0.07 and a true 0.09, so the densities looked coloured and unequal.
 
 1. ``none`` if the backscatter is a negligible share of the image. Every scattering medium
    that is lit shows backscatter, and without it the attenuation is not identifiable: the
    object colour can absorb it (measured on the clear ``none`` scene: share 0.04 at step 300
    and below 0.005 from step 400 on, while the attenuation stayed at 0.5-0.9 /m).
-2. ``fog`` if the veiling light is grey and all six densities agree. A wavelength-independent
-   medium scatters the illumination's own colour back, so its veiling light is grey on
-   white-balanced images; water absorbs red first and turns it blue-green.
+2. ``fog`` if the densities are grey: the attenuation's channels within
+   :attr:`ChoiceRule.grey_attenuation_ratio`, the backscatter density's within the looser
+   :attr:`ChoiceRule.grey_backscatter_ratio`.
+   Fog and haze attenuate independently of wavelength (the paper, sec. 3); water absorbs red first
+   (the demos: ratios 1.4-1.6, path-traced coastal water 2.5). The veiling light is no test: it
+   takes the illuminant's colour (blue under a sky: 1.44 on the path-traced fog), and neither is
+   ``β_D = β_B``: with forward scattering the best-fitting backscatter density of the path-traced
+   fog is 0.72 of its attenuation (docs/history.md, 2026-11-27).
 3. ``uniform`` if attenuation and backscatter agree per channel: where the scene's far range
    is known (the SfM bounds), if tying them changes the light from the farthest surfaces by
    less than :attr:`ChoiceRule.tie_optical_depth` in optical depth; else, if their ratio is
@@ -26,6 +35,7 @@ so they do not depend on units.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import Any, Dict, List, Optional, Sequence, Tuple
@@ -36,6 +46,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.diagnostics import CHANNELS
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS
+from seathru_nerfstudio.medium_fit import fit_model_medium, sfm_observation_table
 from seathru_nerfstudio.phases import TrainingPhases
 
 RGB = Tuple[float, float, float]
@@ -65,10 +76,11 @@ class ChoiceRule:
 
     none_below_share: float = 0.02
     """``none`` below this backscatter share of the image."""
-    grey_veil_ratio: float = 1.25
-    """``fog`` needs the veiling light's channels within this ratio of each other."""
-    fog_density_ratio: float = 1.5
-    """``fog`` needs all six densities within this ratio of each other."""
+    grey_attenuation_ratio: float = 1.25
+    """``fog`` needs the attenuation's channels within this ratio of each other."""
+    grey_backscatter_ratio: float = 1.5
+    """... and the backscatter density's within this one: looser, since it also carries the colour
+    of the light that scatters (1.23 fitted on the path-traced fog, whose attenuation is grey)."""
     tie_ratio: float = 1.3
     """Without a far range, ``uniform`` needs attenuation and backscatter within this ratio,
     channel by channel."""
@@ -89,11 +101,10 @@ def choose_medium_model(evidence: MediumEvidence, rule: ChoiceRule = ChoiceRule(
     share = evidence.backscatter_share
     if share < rule.none_below_share:
         return "none", f"backscatter share {share:.3f} < {rule.none_below_share:g}"
-    veil = _ratio(evidence.B_inf)
-    densities = _ratio((*evidence.beta_D, *evidence.beta_B))
-    facts = f"backscatter share {share:.3f}, veiling light ratio {veil:.2f}, density ratio {densities:.2f}"
-    if veil <= rule.grey_veil_ratio and densities <= rule.fog_density_ratio:
-        return "fog", f"{facts}: grey veil (<= {rule.grey_veil_ratio:g}), densities agree (<= {rule.fog_density_ratio:g})"
+    grey, grey_backscatter = _ratio(evidence.beta_D), _ratio(evidence.beta_B)
+    facts = f"backscatter share {share:.3f}, attenuation ratio {grey:.2f}, backscatter density ratio {grey_backscatter:.2f}"
+    if grey <= rule.grey_attenuation_ratio and grey_backscatter <= rule.grey_backscatter_ratio:
+        return "fog", f"{facts}: grey (<= {rule.grey_attenuation_ratio:g}, {rule.grey_backscatter_ratio:g})"
     far = evidence.far_range
     if far is not None and math.isfinite(far) and far > 0:
         gap = max(abs(d - b) for d, b in zip(evidence.beta_D, evidence.beta_B)) * far
@@ -171,6 +182,27 @@ class AutoMediumChoice:
             far_range=self.model.far_range,
         )
 
+    def fitted_evidence(self, evidence: MediumEvidence) -> Tuple[MediumEvidence, str]:
+        """``evidence`` with the densities of the medium fit to the SfM observations (six free),
+        channel by channel where the fit's standard error of ``ln β_D`` is at most
+        ``research.medium_fit_max_log_error``, and where they come from, in words."""
+        model = self.model
+        table = sfm_observation_table(model)
+        if not model.fits_medium or table is None:
+            return evidence, "from the warm-up (no SfM fit)"
+        _, _, fit = fit_model_medium(model, table, tie="seathru")
+        certain = fit.attenuation_log_error <= model.config.research.medium_fit_max_log_error
+        if not bool(certain.any()):
+            return evidence, "from the warm-up (the SfM fit is uncertain)"
+
+        def merged(fitted: torch.Tensor, warm_up: RGB) -> RGB:
+            return tuple(float(f) if c else w for f, c, w in zip(fitted, certain, warm_up))  # type: ignore[return-value]
+
+        chosen = dataclasses.replace(
+            evidence, beta_D=merged(fit.attenuation, evidence.beta_D), beta_B=merged(fit.backscatter, evidence.beta_B)
+        )
+        return chosen, f"from the SfM fit ({int(certain.sum())} of 3 channels)"
+
     def after_step(self, step: int, optimizers: Any = None) -> None:
         """At ``research.auto_decision_step``: decide. ``optimizers``: the trainer's, whose state of
         the restarted parameter groups is cleared."""
@@ -180,7 +212,9 @@ class AutoMediumChoice:
         evidence = self.mean_evidence()
         if evidence is None:
             return  # resumed right before the decision: gather the evidence first
+        evidence, source = self.fitted_evidence(evidence)
         chosen, reason = choose_medium_model(evidence, model.config.research.auto_rule)
+        reason += f"; densities {source}"
         model.medium_model_code.fill_(MEDIUM_MODELS.index(chosen))
         if chosen == "none" and self.initial_object is not None:
             model.field.load_state_dict(self.initial_object["field"])

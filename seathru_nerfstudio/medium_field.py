@@ -10,7 +10,7 @@ per sample. Three variants share one interface, ``medium(directions) -> MediumOu
 * :class:`FixedMedium`, given constants (an oracle for experiments: the true medium).
 
 Each of them has six densities; :func:`tie` makes the simpler medium models of
-:data:`MEDIUM_MODELS` from them by averaging (``fog``: one density for everything,
+:data:`MEDIUM_MODELS` from them by averaging (``fog``: one attenuation and one backscatter density for all channels,
 ``uniform``: one per channel for attenuation and backscatter), so that every model has the
 same parameters and a switch between models keeps the medium learned so far.
 """
@@ -47,7 +47,9 @@ MediumModel = Literal["none", "fog", "uniform", "seathru", "basic"]
 """How much medium a scene gets (``SeathruModelConfig.medium_model``):
 
 * ``none``: clear air; nothing is evaluated, ``rgb = clean`` (nerfacto's rendering);
-* ``fog``: one wavelength-independent density for attenuation and backscatter;
+* ``fog``: wavelength-independent: one attenuation and one backscatter density for all channels
+  (the paper's fog, sec. 3, also ties the two; physically rendered fog does not: with forward
+  scattering its best-fitting backscatter density is 0.72 of its attenuation);
 * ``uniform``: one density per channel, shared by attenuation and backscatter;
 * ``seathru``: separate attenuation and backscatter densities per channel (sec. 4.3, "final");
 * ``basic``: the paper's basic model (sec. 4.1, eqs. 11-13: one medium density per channel),
@@ -61,13 +63,13 @@ def tie_matrix(model: str) -> Float[Tensor, "6 K"]:
     """0/1 matrix from the ``K`` densities ``model`` keeps free to ``(β_D RGB, β_B RGB)``: the one
     table of which densities a medium model keeps equal, for rendering (:func:`tie`) and for the
     fit (:mod:`seathru_nerfstudio.medium_fit`). ``seathru`` six free, ``uniform`` and ``basic`` one
-    per channel, ``fog`` one for all six."""
+    per channel, ``fog`` one attenuation and one backscatter density for all channels."""
     if model == "seathru":
         return torch.eye(6, dtype=torch.float64)
     if model in ("uniform", "basic"):
         return torch.cat([torch.eye(3, dtype=torch.float64)] * 2)
-    if model == "fog":
-        return torch.ones(6, 1, dtype=torch.float64)
+    if model == "fog":  # one grey attenuation, one grey backscatter density
+        return torch.repeat_interleave(torch.eye(2, dtype=torch.float64), 3, dim=0)
     raise ValueError(f"tie_matrix: no medium densities for model {model!r}; expected one of {MEDIUM_MODELS[1:]}")
 
 
@@ -77,7 +79,7 @@ FREE_DENSITIES: Dict[str, int] = {"none": 0, **{model: tie_matrix(model).shape[1
 
 def tie(medium: "MediumOutputs", model: str) -> "MediumOutputs":
     """``medium`` with its densities tied as ``model`` asks (:func:`tie_matrix`), each to the
-    mean of its group: ``fog`` gives every channel of both densities the mean of the six,
+    mean of its group: ``fog`` gives every channel the mean attenuation and the mean backscatter,
     ``uniform`` and ``basic`` give attenuation and backscatter their per-channel mean, ``seathru``
     keeps them. (``none`` has no medium: the model never calls this for it.) With tied inputs
     the result is the input. Selections, sums and a gather (no product with the 0/1 matrix, so no

@@ -15,8 +15,9 @@ its range, and gradient descent on the radiance field follows that weak signal s
 fitted directly, on a few thousand numbers (L-BFGS, a second or two). The fit is only as good as the veiling light given
 to it; channels whose backscatter is tiny (small ``B∞``) leave ``β_B`` undetermined.
 
-A medium model that renders tied densities (``fog``: one for all six) is fitted tied (``tie``):
-the mean of six free densities is not the best single one (fog demo: 1.03 against 1.11 /m, truth 1.2).
+A medium model that renders tied densities (``fog``: one per kind; ``uniform``: one per channel) is
+fitted tied (``tie``): the mean of free densities is not the best tied one (fog demo, all six tied:
+1.03 against 1.11 /m, truth 1.2).
 
 Some observations break the model: a point on a silhouette against open water is sampled
 (bilinearly, and with SfM's position error) partly from the water behind it, in some views and not
@@ -306,6 +307,26 @@ def fit_densities(
     return DensityFit(densities[:3], densities[3:], final, *errors)
 
 
+def sfm_observation_table(model: Any) -> Any:
+    """The dataparser's SfM observation table of ``model``, or ``None`` if it has no observation."""
+    table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
+    return table if table is not None and table.num_observations > 0 else None
+
+
+def fit_model_medium(model: Any, table: Any, tie: str) -> tuple[Tensor, Tensor, DensityFit]:
+    """:func:`fit_densities` on ``table`` under the veiling light ``model`` has learned, started at
+    its densities. Returns ``(densities, veil, fit)``: the model's densities (1/world unit,
+    ``β_D`` then ``β_B``) and veil before the fit, and the fit."""
+    medium = model.medium_field
+    with torch.no_grad():
+        densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale
+        veil = torch.sigmoid(medium.rgb_logit.double())
+    fit = fit_densities(
+        torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:], tie=tie
+    )
+    return densities, veil, fit
+
+
 def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     """The ``medium_fit_step`` callback: replace the scene medium's densities by
     :func:`fit_densities` on the dataparser's SfM observation table, under the veiling light learned
@@ -316,8 +337,8 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     config = model.config
     if not (model.fits_medium and TrainingPhases(config, step).ends(config.medium_fit_step)):
         return
-    table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
-    if table is None or table.num_observations == 0:
+    table = sfm_observation_table(model)
+    if table is None:
         CONSOLE.print(
             f"[bold yellow]seathru step {step}: no SfM observations to fit the medium to (no SfM depth maps or "
             "COLMAP tracks); the densities train on"
@@ -327,13 +348,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
         CONSOLE.print(f"[bold]seathru step {step}: no medium to fit (medium model none)")
         return
     medium = model.medium_field
-    with torch.no_grad():
-        densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale
-        veil = torch.sigmoid(medium.rgb_logit.double())
-    fit = fit_densities(
-        torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:],
-        tie=model.medium_model,
-    )  # fmt: skip
+    densities, veil, fit = fit_model_medium(model, table, tie=model.medium_model)
     model.fit_log_error.copy_(fit.attenuation_log_error.to(model.fit_log_error))
     uncertain = fit.attenuation_log_error > config.research.medium_fit_max_log_error
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731

@@ -297,13 +297,15 @@ def _images_under(ranges, colour, beta_d, beta_b):
 
 
 def test_a_tied_fit_recovers_a_tied_medium_and_keeps_its_densities_equal():
-    """``fog``: one density for all six; ``uniform``: attenuation = backscatter per channel."""
+    """``fog``: one grey attenuation and one grey backscatter density; ``uniform``: attenuation =
+    backscatter per channel."""
     ranges, _, colour = _observations()
     s_d, s_b = torch.tensor([2.0, 1.5, 0.6], dtype=torch.float64), torch.tensor([0.8, 1.1, 1.7], dtype=torch.float64)
-    grey = torch.full((3,), 1.2, dtype=torch.float64)
-    fog = fit_densities(ranges, _images_under(ranges, colour, grey, grey), VEIL, s_d, s_b, tie="fog")
+    grey, grey_backscatter = torch.full((3,), 1.2, dtype=torch.float64), torch.full((3,), 0.85, dtype=torch.float64)
+    fog = fit_densities(ranges, _images_under(ranges, colour, grey, grey_backscatter), VEIL, s_d, s_b, tie="fog")
     torch.testing.assert_close(fog.attenuation, grey, rtol=1e-4, atol=0)
-    torch.testing.assert_close(fog.backscatter, grey, rtol=1e-4, atol=0)
+    torch.testing.assert_close(fog.backscatter, grey_backscatter, rtol=1e-4, atol=0)
+    assert torch.equal(fog.attenuation, fog.attenuation[:1].expand(3)) and torch.equal(fog.backscatter, fog.backscatter[:1].expand(3))
     per_channel = torch.tensor([1.3, 1.0, 0.7], dtype=torch.float64)
     uniform = fit_densities(ranges, _images_under(ranges, colour, per_channel, per_channel), VEIL, s_d, s_b, tie="uniform")
     torch.testing.assert_close(uniform.attenuation, per_channel, rtol=1e-4, atol=0)
@@ -346,12 +348,13 @@ def test_tied_errors_add_the_channels_information_and_reduce_to_the_block_formul
         torch.testing.assert_close(tied_error, block_error)
     one = torch.full((3, 1, 1), 5.0, dtype=torch.float64)
     same = torch.full((3,), 0.4, dtype=torch.float64)
-    error_d, error_b = tied_log_density_errors(same, one, tie_matrix("fog"), num_points=10)
+    all_six = torch.ones(6, 1, dtype=torch.float64)  # the paper's fog: one density for all six
+    error_d, error_b = tied_log_density_errors(same, one, all_six, num_points=10)
     single = torch.sqrt(torch.tensor(2 * 0.04 / 5.0, dtype=torch.float64))
     torch.testing.assert_close(error_d, (single / 3**0.5).expand(3))
     assert torch.equal(error_d, error_b)
     flat = torch.zeros(3, 1, 1, dtype=torch.float64)  # no curvature: undetermined
-    assert torch.all(tied_log_density_errors(same, flat, tie_matrix("fog"), num_points=10)[0] == 2 * LOG_DENSITY_LIMIT)
+    assert torch.all(tied_log_density_errors(same, flat, all_six, num_points=10)[0] == 2 * LOG_DENSITY_LIMIT)
 
 
 def test_bilinear_is_exact_on_a_plane_and_clamps_at_the_outermost_centres():

@@ -744,7 +744,7 @@ def test_the_envelope_can_fit_the_backscatter_density_alone():
 def test_fitted_densities_that_are_held_get_no_gradient_and_the_others_learn():
     """After the fit, the channels it replaced get no gradient in training;
     a channel it kept (here green) trains on, as before the fit; also through a tied medium (``fog``
-    averages the six densities), where the hold acts on the parameters, not on the tied outputs."""
+    averages each kind over the channels), where the hold acts on the parameters, not on the tied outputs."""
     for medium_model in ("seathru", "fog"):
         model = tiny_model(medium_first_steps=0, medium_model=medium_model)
         model.train()
@@ -807,7 +807,8 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     apply_medium_fit(fog, 9)
     assert "(fog tie)" in capsys.readouterr().out  # the log names the tie it fitted
     fog_sigma = torch.nn.functional.softplus(fog.medium_field.density_raw.detach().double())
-    torch.testing.assert_close(fog_sigma, fog_sigma[:1].expand(6), rtol=1e-6, atol=0)
+    torch.testing.assert_close(fog_sigma[:3], fog_sigma[:1].expand(3), rtol=1e-6, atol=0)  # one grey attenuation
+    torch.testing.assert_close(fog_sigma[3:], fog_sigma[3:4].expand(3), rtol=1e-6, atol=0)  # one grey backscatter
     assert not torch.allclose(fog_sigma, torch.nn.functional.softplus(before.double()))
     clear = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_model="none")
     clear_before = clear.medium_field.density_raw.detach().clone()
