@@ -316,14 +316,22 @@ def sfm_observation_table(model: Any) -> Any:
 def fit_model_medium(model: Any, table: Any, tie: str) -> tuple[Tensor, Tensor, DensityFit]:
     """:func:`fit_densities` on ``table`` under the veiling light ``model`` has learned, started at
     its densities. Returns ``(densities, veil, fit)``: the model's densities (1/world unit,
-    ``β_D`` then ``β_B``) and veil before the fit, and the fit."""
+    ``β_D`` then ``β_B``) and veil before the fit, and the fit.
+
+    The last fit is kept on the model (``model.last_medium_fit``) with its inputs, and returned
+    again while the tie, the densities and the veil are bitwise the same: ``auto``'s evidence and
+    the fit that follows at the same step then cost one fit, not two."""
     medium = model.medium_field
     with torch.no_grad():
         densities = torch.nn.functional.softplus(medium.density_raw.double()) * model.world_scale
         veil = torch.sigmoid(medium.rgb_logit.double())
+    last = getattr(model, "last_medium_fit", None)
+    if last is not None and last[0] == tie and torch.equal(last[1], densities) and torch.equal(last[2], veil):
+        return densities, veil, last[3]
     fit = fit_densities(
         torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, densities[:3], densities[3:], tie=tie
     )
+    model.last_medium_fit = (tie, densities, veil, fit)
     return densities, veil, fit
 
 

@@ -767,6 +767,27 @@ def test_a_zero_or_non_finite_dataparser_scale_is_refused():
     assert tiny_model(metadata={SCALE_KEY: 0.25}).world_scale == 0.25
 
 
+def test_a_fit_of_the_same_inputs_is_computed_once():
+    """``auto``'s evidence and ``apply_medium_fit`` at the same step fit the same medium: the second
+    call returns the first fit; new densities, or another tie, fit again."""
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
+    from seathru_nerfstudio.data.sfm_observations import SfmObservations
+    from seathru_nerfstudio.medium_fit import fit_model_medium
+
+    rng = np.random.default_rng(0)
+    ranges = rng.uniform(1.0, 3.0, (50, 1)) * rng.uniform(0.9, 1.1, (50, 4))
+    colours = rng.uniform(0.1, 1.0, (50, 1, 3)) * np.exp(-ranges[..., None]) + 0.3 * -np.expm1(-0.8 * ranges[..., None])
+    table = SfmObservations(ranges=ranges, colours=colours)
+    model = tiny_model(metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table})
+    first = fit_model_medium(model, table, tie="seathru")[2]
+    assert fit_model_medium(model, table, tie="seathru")[2] is first
+    assert fit_model_medium(model, table, tie="fog")[2] is not first
+    with torch.no_grad():
+        model.medium_field.density_raw.add_(0.1)
+    again = fit_model_medium(model, table, tie="seathru")[2]
+    assert again is not first and torch.allclose(again.attenuation, first.attenuation, rtol=1e-4)  # same data, same optimum
+
+
 def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(capsys):
     """At ``medium_fit_step`` the scene medium's densities (per scene unit) become the fit (per metre)
     divided by the scale; before that step nothing changes; a ray medium is left alone."""
