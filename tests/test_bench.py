@@ -387,3 +387,19 @@ def test_method_labels_fit_a_file_name_and_stay_unique(tmp_path):
     assert label_a == method_label(long_a)  # the same spec finds the same directory
     (tmp_path / label_a).mkdir()
     assert method_label("seathru-nerf-lite:medium_model=none") == "seathru-nerf-lite_medium_model_none"
+
+
+def test_clear_air_prints_the_predicted_medium_not_an_error_against_a_fitted_reference():
+    """Clear air's true medium is 0; its ceiling fits a tiny β_B there, and an error relative to that
+    (2184% on the path-traced clear scene) says nothing: the cell shows the prediction. Where the truth
+    is not 0, the reference's error stays."""
+    zero = {key: [0.0, 0.0, 0.0] for key in scoring.MEDIUM_KEYS}
+    pred = {"beta_D": [0.03, 0.05, 0.05], "beta_B": [0.028, 0.02, 0.02], "B_inf": [0.2, 0.3, 0.4]}
+    fitted = {"beta_D": [0.0, 0.0, 0.0], "beta_B": [0.001, 0.001, 0.001], "B_inf": [0.3, 0.3, 0.3]}
+    record = {"medium_error": scoring.medium_error(pred, zero), "medium_error_reference": scoring.medium_error(pred, fitted)}
+    assert report._medium_cell(record, "beta_B") == "pred (0.028, 0.02, 0.02)"
+    assert report._medium_cell(record, "beta_D") == "pred (0.03, 0.05, 0.05)"
+    water = {"beta_D": [1.0, 1.0, 1.0], "beta_B": [1.0, 1.0, 1.0], "B_inf": [0.2, 0.2, 0.2]}
+    record = {"medium_error": scoring.medium_error(pred, water), "medium_error_reference": scoring.medium_error(pred, fitted)}
+    assert report._medium_cell(record, "B_inf") == report._medium_cell({"medium_error": record["medium_error_reference"]}, "B_inf")
+    assert report._medium_cell(record, "B_inf") == "22% (33, 0, 33)"

@@ -48,9 +48,18 @@ def _metric(metrics: Dict[str, Any], key: str) -> Optional[float]:
     return None if value is None else float(value)
 
 
+def _no_true_medium(err: Dict[str, Any]) -> bool:
+    """Whether an error record's truth is 0 in every channel (clear air): no relative error exists."""
+    return all(isinstance(r, float) and math.isnan(r) for r in err["rel"])
+
+
 def _medium_errors(record: Dict[str, Any]) -> Dict[str, Any]:
-    """Against the scene's ceiling reference where there is one, else against the truth."""
-    return record.get("medium_error_reference") or record.get("medium_error") or {}
+    """Against the scene's ceiling reference where there is one, else against the truth; per
+    quantity, the truth where it is 0 (clear air: a reference fitted there is a tiny number, and
+    a relative error against it says nothing)."""
+    truth = record.get("medium_error") or {}
+    reference = record.get("medium_error_reference") or truth
+    return {key: truth[key] if key in truth and _no_true_medium(truth[key]) else err for key, err in reference.items()}
 
 
 def _value(record: Dict[str, Any], key: str) -> float:
@@ -83,10 +92,9 @@ def _medium_cell(record: Dict[str, Any], key: str) -> str:
         if medium is None:
             return "n/a"
         return _values(medium[key])
-    rel = err["rel"]
-    if all(isinstance(r, float) and math.isnan(r) for r in rel):  # truth is 0: absolute values
+    if _no_true_medium(err):  # truth is 0: absolute values
         return "pred " + _values(err["pred"])
-    return f"{100 * err['rel_mean']:.0f}% (" + ", ".join(f"{100 * r:.0f}" for r in rel) + ")"
+    return f"{100 * err['rel_mean']:.0f}% (" + ", ".join(f"{100 * r:.0f}" for r in err["rel"]) + ")"
 
 
 def ceiling_rows(record: Dict[str, Any], before: int) -> List[List[str]]:
