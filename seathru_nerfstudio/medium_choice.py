@@ -11,8 +11,14 @@ against a fitted 0.07 and a true 0.09, so the densities looked coloured and uneq
 
 1. ``none`` if the backscatter is a negligible share of the image. Every scattering medium
    that is lit shows backscatter, and without it the attenuation is not identifiable: the
-   object colour can absorb it (measured on the clear ``none`` scene: share 0.04 at step 300
-   and below 0.005 from step 400 on, while the attenuation stayed at 0.5-0.9 /m).
+   object colour can absorb it. Where there are SfM observations the share is that of the
+   medium fit at the observed surfaces (:func:`~seathru_nerfstudio.medium_fit.observed_backscatter_share`):
+   how much of their light changes with range as backscatter does. The warm-up's share waits for
+   the object field to take the light the backscatter held: on the tiny clear demo (48x36, 1024
+   rays a step) it was 0.007 at step 420 with torch seeded 0 but 0.030 with seed 1, so ``seathru``;
+   the fit's share is below 1e-4 on the clear demos at any step, 0.73 on the water demo, 0.90 on
+   fog, 0.43-0.60 on path-traced water and fog (and 0.14 on path-traced clear air, which still gets
+   water; docs/history.md, 2026-11-27).
 2. ``fog`` if the densities are grey: the attenuation's channels within
    :attr:`ChoiceRule.grey_attenuation_ratio`, the backscatter density's within the looser
    :attr:`ChoiceRule.grey_backscatter_ratio`.
@@ -46,7 +52,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.diagnostics import CHANNELS
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS
-from seathru_nerfstudio.medium_fit import fit_model_medium, sfm_observation_table
+from seathru_nerfstudio.medium_fit import fit_model_medium, observed_backscatter_share, sfm_observation_table
 from seathru_nerfstudio.phases import TrainingPhases
 
 RGB = Tuple[float, float, float]
@@ -59,7 +65,8 @@ class MediumEvidence:
     """What the warm-up learned: the ``seathru`` medium, averaged over its last steps."""
 
     backscatter_share: float
-    """Backscatter over the in-medium image (sum over the rays of a batch), in [0, 1]."""
+    """Backscatter over the in-medium image (sum over the rays of a batch), in [0, 1]; with SfM
+    observations, the medium fit's backscatter over their light."""
     beta_D: RGB
     """Attenuation per channel, 1/world unit."""
     beta_B: RGB
@@ -183,17 +190,22 @@ class AutoMediumChoice:
         )
 
     def fitted_evidence(self, evidence: MediumEvidence) -> Tuple[MediumEvidence, str]:
-        """``evidence`` with the densities of the medium fit to the SfM observations (six free),
-        channel by channel where the fit's standard error of ``ln β_D`` is at most
-        ``research.medium_fit_max_log_error``, and where they come from, in words."""
+        """``evidence`` with the backscatter share of the medium fit to the SfM observations (six
+        free) at those observations, and its densities channel by channel where the fit's standard
+        error of ``ln β_D`` is at most ``research.medium_fit_max_log_error``; and where they come
+        from, in words. The share needs no such bound: where the fit cannot split ``β_B`` from the
+        object colour its log-error is large, but the backscatter it puts on the surfaces is what
+        their change with range allows."""
         model = self.model
         table = sfm_observation_table(model)
         if not model.fits_medium or table is None:
             return evidence, "from the warm-up (no SfM fit)"
-        _, _, fit = fit_model_medium(model, table, tie="seathru")
+        _, veil, fit = fit_model_medium(model, table, tie="seathru")
+        share = observed_backscatter_share(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit.backscatter)
+        evidence = dataclasses.replace(evidence, backscatter_share=share)
         certain = fit.attenuation_log_error <= model.config.research.medium_fit_max_log_error
         if not bool(certain.any()):
-            return evidence, "from the warm-up (the SfM fit is uncertain)"
+            return evidence, "from the warm-up (the SfM fit is uncertain; share from the fit)"
 
         def merged(fitted: torch.Tensor, warm_up: RGB) -> RGB:
             return tuple(float(f) if c else w for f, c, w in zip(fitted, certain, warm_up))  # type: ignore[return-value]
@@ -201,7 +213,7 @@ class AutoMediumChoice:
         chosen = dataclasses.replace(
             evidence, beta_D=merged(fit.attenuation, evidence.beta_D), beta_B=merged(fit.backscatter, evidence.beta_B)
         )
-        return chosen, f"from the SfM fit ({int(certain.sum())} of 3 channels)"
+        return chosen, f"from the SfM fit ({int(certain.sum())} of 3 channels; share from the fit)"
 
     def after_step(self, step: int, optimizers: Any = None) -> None:
         """At ``research.auto_decision_step``: decide. ``optimizers``: the trainer's, whose state of

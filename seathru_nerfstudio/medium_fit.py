@@ -307,6 +307,24 @@ def fit_densities(
     return DensityFit(densities[:3], densities[3:], final, *errors)
 
 
+def observed_backscatter_share(
+    ranges: Float[Tensor, "P V"],
+    colours: Float[Tensor, "P V 3"],
+    veil: Float[Tensor, "3"],
+    backscatter: Float[Tensor, "3"],
+) -> float:
+    """The share of the observed light that a medium explains as backscatter:
+    ``Σ B∞ (1 - e^{-β_B z}) / Σ I`` over every observed point, view and channel (``NaN`` where not
+    observed; ``β_B`` in 1/world unit, ``z`` in world units, colours linear). 0 where nothing was
+    observed or everything observed is black."""
+    seen = torch.isfinite(ranges) & torch.isfinite(colours).all(dim=-1)
+    z = torch.where(seen, ranges, torch.zeros_like(ranges)).double()[..., None]
+    light = torch.where(seen[..., None], colours, torch.zeros_like(colours)).double().clamp_min(0.0)
+    veiled = veil.double() * -torch.expm1(-backscatter.double() * z) * seen[..., None]
+    total = float(light.sum())
+    return float(veiled.sum()) / total if total > 0 else 0.0
+
+
 def sfm_observation_table(model: Any) -> Any:
     """The dataparser's SfM observation table of ``model``, or ``None`` if it has no observation."""
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)

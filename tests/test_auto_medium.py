@@ -17,12 +17,11 @@ from tiny_training import BIN, tiny_config
 FIRST_STAGE = 40
 DECISION = 220
 """Water's decision step."""
-CLEAR_AIR_DECISION = 420
-"""On the tiny clear scene the backscatter share falls below 0.02 a few hundred steps after the object
-field starts. It used to fall faster (0.011 at step 220), when the backscatter started above the
-image and the excess term drove it down; since the backscatter density is capped at entry
-(43bf02e, 2026-11-27) it falls on the image's own gradient: 0.034 at step 220, 0.007 at step 420 with
-torch seeded 0 (0.001-0.002 from a fresh process's generator)."""
+CLEAR_AIR_DECISION = 120
+"""Clear air's decision step, early: the share that decides ``none`` is the medium fit's at the SfM
+points (below 1e-4 on this scene from the first stage on). The warm-up's share waited for the object
+field: 0.007 at step 420 with torch seeded 0, but 0.030 with seed 1 (``seathru``); with the fit's
+share both seeds give ``none`` at step 120 (2026-11-27)."""
 
 
 def train_auto(preset: str, root: Path, decision: int = DECISION):

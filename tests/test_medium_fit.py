@@ -8,6 +8,7 @@ import torch
 
 from seathru_nerfstudio.data.sfm_observations import at_flattest_pixels, sfm_observations
 from seathru_nerfstudio.medium_fit import (
+    observed_backscatter_share,
     LOG_DENSITY_LIMIT,
     CAUCHY_TUNING,
     MAD_TO_SIGMA,
@@ -372,3 +373,18 @@ def test_bilinear_is_exact_on_a_plane_and_clamps_at_the_outermost_centres():
     np.testing.assert_allclose(bilinear(plane[..., 0], u, v), expected[:, 0], rtol=0, atol=1e-12)
     outside = bilinear(plane, np.array([-3.0, 40.0]), np.array([-1.0, 20.0]))
     np.testing.assert_allclose(outside, plane[[0, 4], [0, 6]], rtol=0, atol=1e-12)
+
+
+def test_the_observed_backscatter_share_is_the_backscatter_over_the_light_seen():
+    """``Σ B∞ (1 - e^{-β_B z}) / Σ I`` over the observed entries only: by hand on two points; 0 with
+    no backscatter density, and 0 (not NaN) where nothing was observed."""
+    nan = float("nan")
+    ranges = torch.tensor([[1.0, 2.0], [3.0, nan]], dtype=torch.float64)
+    colours = torch.tensor([[[0.2, 0.3, 0.4], [0.1, 0.2, 0.3]], [[0.5, 0.5, 0.5], [nan, nan, nan]]], dtype=torch.float64)
+    veil, beta_b = torch.tensor([0.1, 0.2, 0.4], dtype=torch.float64), torch.tensor([0.5, 0.2, 0.1], dtype=torch.float64)
+    veiled = sum(float((veil * -torch.expm1(-beta_b * z)).sum()) for z in (1.0, 2.0, 3.0))
+    expected = veiled / (0.9 + 0.6 + 1.5)
+    assert observed_backscatter_share(ranges, colours, veil, beta_b) == pytest.approx(expected, rel=1e-12)
+    assert observed_backscatter_share(ranges, colours, veil, torch.zeros(3, dtype=torch.float64)) == 0.0
+    unseen = torch.full((2, 2), nan, dtype=torch.float64)
+    assert observed_backscatter_share(unseen, colours, veil, beta_b) == 0.0

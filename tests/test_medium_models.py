@@ -424,3 +424,33 @@ def test_auto_decides_from_the_sfm_fit_and_the_fit_then_ties_as_chosen(warm_up, 
     torch.testing.assert_close(sigma, torch.from_numpy(np.concatenate([beta_d, beta_b])), rtol=1e-3, atol=0)
     if chosen == "fog":  # tied by the fit: bitwise equal within each kind
         assert torch.equal(sigma[:3], sigma[:1].expand(3)) and torch.equal(sigma[3:], sigma[3:4].expand(3))
+
+
+@pytest.mark.parametrize("medium_density, chosen", [(0.0, "none"), (0.8, "seathru")])
+def test_auto_reads_the_backscatter_share_from_the_fit_at_the_sfm_points(medium_density, chosen):
+    """The share that decides ``none`` is the medium fit's at the SfM observations, not the warm-up's:
+    the warm-up still shows a share of 0.3 (the object field has not yet taken the light the
+    backscatter held), but points whose colour does not change with range are clear air; the same
+    points seen through water (coloured densities, as the water demo) keep a medium."""
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
+    from seathru_nerfstudio.data.sfm_observations import SfmObservations
+
+    rng = np.random.default_rng(3)
+    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
+    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
+    model = tiny_model(
+        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
+        medium_model="auto", medium_first_steps=10, auto_decision_step=40, medium_fit_step=40,
+    )  # fmt: skip
+    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
+    beta_d = medium_density * np.array([1.3, 1.2, 0.9]) / 0.8
+    beta_b = medium_density * np.array([0.95, 0.85, 0.7]) / 0.8
+    colour = rng.uniform(0.1, 1.0, (200, 1, 3))
+    table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
+    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
+    feed_evidence(model, evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.6,) * 3), range(20, 40))
+    for callback in callbacks:
+        callback.run_callback_at_location(39, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    assert model.medium_model == chosen
