@@ -403,3 +403,14 @@ def test_clear_air_prints_the_predicted_medium_not_an_error_against_a_fitted_ref
     record = {"medium_error": scoring.medium_error(pred, water), "medium_error_reference": scoring.medium_error(pred, fitted)}
     assert report._medium_cell(record, "B_inf") == report._medium_cell({"medium_error": record["medium_error_reference"]}, "B_inf")
     assert report._medium_cell(record, "B_inf") == "22% (33, 0, 33)"
+
+
+def test_only_json_objects_with_an_event_are_events():
+    """The runner reads its workers' stdout, where log lines appear too; a diagnostics line wrapped at
+    the console's width once left ``1.00`` alone on a line, valid JSON, and the runner's reader died
+    on it (``'float' object has no attribute 'get'``)."""
+    from seathru_nerfstudio.bench.runner import parse_event
+
+    assert parse_event('{"event": "progress", "step": 3}\n') == {"event": "progress", "step": 3}
+    for line in ("1.00\n", "[1, 2]\n", '"text"\n', "null\n", '{"step": 3}\n', "seathru step 300: medium\n", "\n"):
+        assert parse_event(line) is None, line

@@ -163,6 +163,18 @@ def scene_ceilings(scenes: List[Tuple[str, Path]]) -> Dict[str, Any]:
     return ceilings
 
 
+
+def parse_event(line: str) -> Optional[Dict[str, Any]]:
+    """A worker's stdout line as an event (a JSON object with an ``event`` key), or ``None`` for any
+    other line: the log lines nerfstudio and the model print there too, and a console line wrapped at
+    the terminal's width can leave a bare number (``1.00``), which is valid JSON but no event."""
+    try:
+        event = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    return event if isinstance(event, dict) and "event" in event else None
+
+
 def run_benchmark(config: RunConfig) -> Dict[str, Any]:
     for method in config.methods:  # fail fast on a bad method or override, before writing anything
         build_config(method)
@@ -227,9 +239,8 @@ def run_benchmark(config: RunConfig) -> Dict[str, Any]:
                 for line in proc.stdout:
                     events.write(line)
                     events.flush()
-                    try:
-                        event = json.loads(line)
-                    except json.JSONDecodeError:
+                    event = parse_event(line)
+                    if event is None:
                         continue
                     done = event.get("train_time") if kind == "seconds" else event.get("step")
                     if event["event"] == "progress":
