@@ -4,8 +4,6 @@ and another seed a different one: the rays drawn in nerfstudio's data worker fol
 
 from __future__ import annotations
 
-import os
-import subprocess
 from pathlib import Path
 
 import pytest
@@ -13,28 +11,29 @@ import torch
 
 from seathru_nerfstudio.compat import load_checkpoint
 
-from tiny_checkpoint import start_group, stop_group
-from tiny_training import BIN, TINY_MODEL_ARGS, make_scene
+import forked_cli
+from tiny_training import TINY_MODEL_ARGS, make_scene
 
 pytestmark = pytest.mark.slow  # trains through nerfstudio's Trainer
 
 STEPS = 12
 
 
-def start_training(scene: Path, out: Path, name: str, seed: int) -> subprocess.Popen:
-    command = [
-        str(BIN / "ns-train"), "seathru-nerf-lite",
-        "--data", str(scene),
-        "--output-dir", str(out),
+def train(scene: Path, out: Path, name: str, seed: int) -> None:
+    """``ns-train`` in a process of its own (``forked_cli``: nerfstudio is imported once, not per run,
+    which was most of a 12-step run), on one thread (the suite's ``OMP_NUM_THREADS``)."""
+    result = forked_cli.run(
+        "ns-train", "seathru-nerf-lite",
+        "--data", scene,
+        "--output-dir", out,
         "--experiment-name", "repeat",
         "--timestamp", name,
-        "--max-num-iterations", str(STEPS),
-        "--machine.seed", str(seed),
+        "--max-num-iterations", STEPS,
+        "--machine.seed", seed,
         *TINY_MODEL_ARGS,
-    ]  # fmt: skip
-    env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1", MKL_NUM_THREADS="1")
-    with open(out.parent / f"{name}.log", "w") as log:
-        return start_group(command, env=env, stdout=log, stderr=subprocess.STDOUT)
+        cwd=out.parent, timeout_s=600,
+    )  # fmt: skip
+    assert result.returncode == 0 and not result.stray, (result.stray, result.output[-5000:])
 
 
 def trained_state(out: Path, name: str) -> dict:
@@ -44,19 +43,12 @@ def trained_state(out: Path, name: str) -> dict:
 
 @pytest.fixture(scope="module")
 def states(tmp_path_factory):
-    """Three ``ns-train`` processes, run side by side (each on one thread: the start-up, importing
-    nerfstudio, is most of a 12-step run)."""
+    """Three ``ns-train`` runs, one after the other: seeds 3, 3 and 4."""
     root = tmp_path_factory.mktemp("repeatable")
     scene = make_scene(root)
-    runs = {name: start_training(scene, root / "outputs", name, seed) for name, seed in (("a", 3), ("b", 3), ("c", 4))}
-    try:
-        for name, proc in runs.items():
-            proc.wait(timeout=900)
-            assert proc.returncode == 0, (root / f"{name}.log").read_text()[-5000:]
-    finally:
-        for proc in runs.values():
-            stop_group(proc)  # a run left behind by a failure, and any data worker
-    return {name: trained_state(root / "outputs", name) for name in runs}
+    for name, seed in (("a", 3), ("b", 3), ("c", 4)):
+        train(scene, root / "outputs", name, seed)
+    return {name: trained_state(root / "outputs", name) for name in ("a", "b", "c")}
 
 
 def test_the_same_seed_trains_the_same_model(states):
