@@ -384,6 +384,33 @@ def test_the_prior_takes_its_early_weight_up_to_the_medium_fit_and_its_full_weig
     )
 
 
+def decide_on_sfm_points(seed: int, beta_d, beta_b, warm_up: MediumEvidence):
+    """A tiny ``auto`` model (deciding at step 40, its medium fit at 40 too) whose SfM table holds 200
+    points in 6 views at ranges 1-3, seen under its own veil through ``beta_d``, ``beta_b`` (1/world
+    unit); ``warm_up`` fed as the evidence of steps 20-39, then step 39's callbacks run."""
+    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
+
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
+    from seathru_nerfstudio.data.sfm_observations import SfmObservations
+
+    rng = np.random.default_rng(seed)
+    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
+    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
+    model = tiny_model(
+        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
+        medium_model="auto", medium_first_steps=10, auto_decision_step=40, medium_fit_step=40,
+    )  # fmt: skip
+    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
+    colour = rng.uniform(0.1, 1.0, (200, 1, 3))
+    beta_d, beta_b = np.asarray(beta_d), np.asarray(beta_b)
+    table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
+    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
+    feed_evidence(model, warm_up, range(20, 40))
+    for callback in callbacks:
+        callback.run_callback_at_location(39, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    return model
+
+
 @pytest.mark.parametrize(
     "warm_up, beta_d, beta_b, chosen",
     [
@@ -399,26 +426,7 @@ def test_auto_decides_from_the_sfm_fit_and_the_fit_then_ties_as_chosen(warm_up, 
     observations, not from the warm-up; the fit that follows in the same step's callbacks
     (``medium_fit_step``) ties as the model chosen: ``fog`` one grey attenuation and one grey
     backscatter density, each the truth."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-
-    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
-    from seathru_nerfstudio.data.sfm_observations import SfmObservations
-
-    rng = np.random.default_rng(1)
-    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
-    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
-    model = tiny_model(
-        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
-        medium_model="auto", medium_first_steps=10, auto_decision_step=40, medium_fit_step=40,
-    )  # fmt: skip
-    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
-    colour = rng.uniform(0.1, 1.0, (200, 1, 3))
-    beta_d, beta_b = np.array(beta_d), np.array(beta_b)
-    table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
-    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
-    feed_evidence(model, evidence(share=0.3, beta_D=warm_up, beta_B=(0.2, 0.1, 0.3), B_inf=(0.6,) * 3), range(20, 40))
-    for callback in callbacks:
-        callback.run_callback_at_location(39, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    model = decide_on_sfm_points(1, beta_d, beta_b, evidence(share=0.3, beta_D=warm_up, beta_B=(0.2, 0.1, 0.3), B_inf=(0.6,) * 3))
     assert model.medium_model == chosen
     sigma = torch.nn.functional.softplus(model.medium_field.density_raw.detach().double())
     torch.testing.assert_close(sigma, torch.from_numpy(np.concatenate([beta_d, beta_b])), rtol=1e-3, atol=0)
@@ -432,25 +440,8 @@ def test_auto_reads_the_backscatter_share_from_the_fit_at_the_sfm_points(medium_
     the warm-up still shows a share of 0.3 (the object field has not yet taken the light the
     backscatter held), but points whose colour does not change with range are clear air; the same
     points seen through water (coloured densities, as the water demo) keep a medium."""
-    from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
-
-    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
-    from seathru_nerfstudio.data.sfm_observations import SfmObservations
-
-    rng = np.random.default_rng(3)
-    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
-    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
-    model = tiny_model(
-        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
-        medium_model="auto", medium_first_steps=10, auto_decision_step=40, medium_fit_step=40,
-    )  # fmt: skip
-    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
     beta_d = medium_density * np.array([1.3, 1.2, 0.9]) / 0.8
     beta_b = medium_density * np.array([0.95, 0.85, 0.7]) / 0.8
-    colour = rng.uniform(0.1, 1.0, (200, 1, 3))
-    table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
-    callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
-    feed_evidence(model, evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.6,) * 3), range(20, 40))
-    for callback in callbacks:
-        callback.run_callback_at_location(39, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
+    warm_up = evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.6,) * 3)
+    model = decide_on_sfm_points(3, beta_d, beta_b, warm_up)
     assert model.medium_model == chosen
