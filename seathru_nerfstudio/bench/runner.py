@@ -163,7 +163,6 @@ def scene_ceilings(scenes: List[Tuple[str, Path]]) -> Dict[str, Any]:
     return ceilings
 
 
-
 def parse_event(line: str) -> Optional[Dict[str, Any]]:
     """A worker's stdout line as an event (a JSON object with an ``event`` key), or ``None`` for any
     other line: the log lines nerfstudio and the model print there too, and a console line wrapped at
