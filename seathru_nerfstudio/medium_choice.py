@@ -9,16 +9,19 @@ six free, under the veiling light learned so far), not the warm-up's: the warm-u
 density sits at the cap from the darkest pixels, and on the path-traced fog it was 0.03 /m
 against a fitted 0.07 and a true 0.09, so the densities looked coloured and unequal.
 
-1. ``none`` if the backscatter is a negligible share of the image. Every scattering medium
-   that is lit shows backscatter, and without it the attenuation is not identifiable: the
-   object colour can absorb it. Where there are SfM observations the share is that of the
-   medium fit at the observed surfaces (:func:`~seathru_nerfstudio.medium_fit.observed_backscatter_share`):
-   how much of their light changes with range as backscatter does. The warm-up's share waits for
-   the object field to take the light the backscatter held: on the tiny clear demo (48x36, 1024
-   rays a step) it was 0.007 at step 420 with torch seeded 0 but 0.030 with seed 1, so ``seathru``;
-   the fit's share is below 1e-4 on the clear demos at any step, 0.73 on the water demo, 0.90 on
-   fog, 0.43-0.60 on path-traced water and fog (and 0.14 on path-traced clear air, which still gets
-   water; docs/history.md, 2026-11-27).
+1. ``none`` if the medium does not explain the scene. Where there are SfM observations, that is
+   the share of how the surfaces' colours change between views that the medium fit explains
+   (:func:`~seathru_nerfstudio.medium_fit.explained_variation`, in the channel where it explains
+   most), below :attr:`ChoiceRule.none_below_explained`. A medium changes a surface's colour with
+   its range; clear air does not, whatever its background. The backscatter share cannot tell: on
+   path-traced clear air with a bright sky the fit puts 14-18% of the light in backscatter (the
+   sky, learned as veiling light, and the colour changes that a pixel's footprint makes between
+   views, which converge on the neighbourhood's mean as a medium's converge on its veil), yet it
+   explains 0.6-1.3% of the change; on path-traced water and fog it explains 12-14%, on the formula
+   demos 33-37% (0.09% on the clear demo; docs/history.md, 2026-11-27). Without SfM observations,
+   the warm-up's backscatter share of the image must reach :attr:`ChoiceRule.none_below_share`:
+   every scattering medium that is lit shows backscatter, and without it the attenuation is not
+   identifiable (the object colour can absorb it).
 2. ``fog`` if the densities are grey: the attenuation's channels within
    :attr:`ChoiceRule.grey_attenuation_ratio`, the backscatter density's within the looser
    :attr:`ChoiceRule.grey_backscatter_ratio`.
@@ -52,7 +55,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.diagnostics import CHANNELS
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS
-from seathru_nerfstudio.medium_fit import fit_model_medium, observed_backscatter_share, sfm_observation_table
+from seathru_nerfstudio.medium_fit import explained_variation, fit_model_medium, sfm_observation_table
 from seathru_nerfstudio.phases import TrainingPhases
 
 RGB = Tuple[float, float, float]
@@ -65,8 +68,7 @@ class MediumEvidence:
     """What the warm-up learned: the ``seathru`` medium, averaged over its last steps."""
 
     backscatter_share: float
-    """Backscatter over the in-medium image (sum over the rays of a batch), in [0, 1]; with SfM
-    observations, the medium fit's backscatter over their light."""
+    """Backscatter over the in-medium image (sum over the rays of a batch), in [0, 1]."""
     beta_D: RGB
     """Attenuation per channel, 1/world unit."""
     beta_B: RGB
@@ -75,14 +77,20 @@ class MediumEvidence:
     """Veiling light per channel, linear."""
     far_range: Optional[float] = None
     """Range of the farthest surfaces (the SfM far bound), world units; ``None``: unknown."""
+    explained: Optional[float] = None
+    """The largest share over the channels of the SfM points' colour change between views that the
+    medium fit explains (:func:`~seathru_nerfstudio.medium_fit.explained_variation`); ``None``:
+    no fit."""
 
 
 @dataclass(frozen=True)
 class ChoiceRule:
     """Thresholds of :func:`choose_medium_model`."""
 
+    none_below_explained: float = 0.05
+    """With a medium fit, ``none`` where it explains less than this share of the colour change."""
     none_below_share: float = 0.02
-    """``none`` below this backscatter share of the image."""
+    """Without one, ``none`` below this backscatter share of the image."""
     grey_attenuation_ratio: float = 1.25
     """``fog`` needs the attenuation's channels within this ratio of each other."""
     grey_backscatter_ratio: float = 1.5
@@ -105,11 +113,17 @@ def _ratio(values: Sequence[float]) -> float:
 
 def choose_medium_model(evidence: MediumEvidence, rule: ChoiceRule = ChoiceRule()) -> Tuple[str, str]:
     """The simplest medium model the evidence allows, and why, in one readable phrase."""
-    share = evidence.backscatter_share
-    if share < rule.none_below_share:
+    share, explained = evidence.backscatter_share, evidence.explained
+    if explained is not None:
+        if explained < rule.none_below_explained:
+            return "none", f"the medium explains {explained:.3f} < {rule.none_below_explained:g} of the colour change"
+        shown = f"the medium explains {explained:.3f} of the colour change"
+    elif share < rule.none_below_share:
         return "none", f"backscatter share {share:.3f} < {rule.none_below_share:g}"
+    else:
+        shown = f"backscatter share {share:.3f}"
     grey, grey_backscatter = _ratio(evidence.beta_D), _ratio(evidence.beta_B)
-    facts = f"backscatter share {share:.3f}, attenuation ratio {grey:.2f}, backscatter density ratio {grey_backscatter:.2f}"
+    facts = f"{shown}, attenuation ratio {grey:.2f}, backscatter density ratio {grey_backscatter:.2f}"
     if grey <= rule.grey_attenuation_ratio and grey_backscatter <= rule.grey_backscatter_ratio:
         return "fog", f"{facts}: grey (<= {rule.grey_attenuation_ratio:g}, {rule.grey_backscatter_ratio:g})"
     far = evidence.far_range
@@ -190,22 +204,22 @@ class AutoMediumChoice:
         )
 
     def fitted_evidence(self, evidence: MediumEvidence) -> Tuple[MediumEvidence, str]:
-        """``evidence`` with the backscatter share of the medium fit to the SfM observations (six
-        free) at those observations, and its densities channel by channel where the fit's standard
-        error of ``ln β_D`` is at most ``research.medium_fit_max_log_error``; and where they come
-        from, in words. The share needs no such bound: where the fit cannot split ``β_B`` from the
-        object colour its log-error is large, but the backscatter it puts on the surfaces is what
-        their change with range allows."""
+        """``evidence`` with the share of the SfM points' colour change that the medium fit (six
+        free) explains, and its densities channel by channel where the fit's standard error of
+        ``ln β_D`` is at most ``research.medium_fit_max_log_error``; and where they come from, in
+        words. The explained share needs no such bound: where the fit cannot split ``β_D`` from
+        ``β_B`` its log-errors are large, but how much of the change the pair explains is not."""
         model = self.model
         table = sfm_observation_table(model)
         if not model.fits_medium or table is None:
             return evidence, "from the warm-up (no SfM fit)"
         _, veil, fit = fit_model_medium(model, table, tie="seathru")
-        share = observed_backscatter_share(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit.backscatter)
-        evidence = dataclasses.replace(evidence, backscatter_share=share)
+        ranges, colours = torch.from_numpy(table.ranges), torch.from_numpy(table.colours)
+        explained = float(explained_variation(ranges, colours, veil, fit.attenuation, fit.backscatter).max())
+        evidence = dataclasses.replace(evidence, explained=explained)
         certain = fit.attenuation_log_error <= model.config.research.medium_fit_max_log_error
         if not bool(certain.any()):
-            return evidence, "from the warm-up (the SfM fit is uncertain; share from the fit)"
+            return evidence, "from the warm-up (the SfM fit is uncertain)"
 
         def merged(fitted: torch.Tensor, warm_up: RGB) -> RGB:
             return tuple(float(f) if c else w for f, c, w in zip(fitted, certain, warm_up))  # type: ignore[return-value]
@@ -213,7 +227,7 @@ class AutoMediumChoice:
         chosen = dataclasses.replace(
             evidence, beta_D=merged(fit.attenuation, evidence.beta_D), beta_B=merged(fit.backscatter, evidence.beta_B)
         )
-        return chosen, f"from the SfM fit ({int(certain.sum())} of 3 channels; share from the fit)"
+        return chosen, f"from the SfM fit ({int(certain.sum())} of 3 channels)"
 
     def after_step(self, step: int, optimizers: Any = None) -> None:
         """At ``research.auto_decision_step``: decide. ``optimizers``: the trainer's, whose state of

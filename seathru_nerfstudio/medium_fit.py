@@ -307,22 +307,35 @@ def fit_densities(
     return DensityFit(densities[:3], densities[3:], final, *errors)
 
 
-def observed_backscatter_share(
+def explained_variation(
     ranges: Float[Tensor, "P V"],
     colours: Float[Tensor, "P V 3"],
     veil: Float[Tensor, "3"],
-    backscatter: Float[Tensor, "3"],
-) -> float:
-    """The share of the observed light that a medium explains as backscatter:
-    ``Σ B∞ (1 - e^{-β_B z}) / Σ I`` over every observed point, view and channel (``NaN`` where not
-    observed; ``β_B`` in 1/world unit, ``z`` in world units, colours linear). 0 where nothing was
-    observed or everything observed is black."""
+    beta_d: Float[Tensor, "3"],
+    beta_b: Float[Tensor, "3"],
+) -> Float[Tensor, "3"]:
+    """Per channel, the share of how the points' colours change between views that the medium explains:
+
+        1 - Σ (I - J a - B)² / Σ (I - Ī_p)²,
+
+    sums over the observed entries (``NaN`` where not observed), ``J a + B`` the medium's prediction
+    with each point's least-squares colour (:func:`best_colours`), ``Ī_p`` the point's mean colour
+    (the prediction without a medium). 1: the medium explains every change; 0: none of it, and 0
+    where the colours do not change at all (nothing to explain). Densities in 1/world unit, ranges in
+    world units, colours linear."""
     seen = torch.isfinite(ranges) & torch.isfinite(colours).all(dim=-1)
-    z = torch.where(seen, ranges, torch.zeros_like(ranges)).double()[..., None]
-    light = torch.where(seen[..., None], colours, torch.zeros_like(colours)).double().clamp_min(0.0)
-    veiled = veil.double() * -torch.expm1(-backscatter.double() * z) * seen[..., None]
-    total = float(light.sum())
-    return float(veiled.sum()) / total if total > 0 else 0.0
+    observed = seen.double()
+    z = torch.where(seen, ranges, torch.zeros_like(ranges)).double()
+    light = torch.where(seen[..., None], colours, torch.zeros_like(colours)).double()
+    no_medium = torch.zeros(3, dtype=torch.float64)
+
+    def squared_residual(attenuation: Tensor, backscatter: Tensor) -> Tensor:
+        _, predicted = best_colours(z, light, observed, attenuation, backscatter, veil.double())
+        return (((predicted - light) * observed[..., None]) ** 2).sum(dim=(0, 1))
+
+    unexplained = squared_residual(no_medium, no_medium)  # Σ (I - Ī_p)² for colours >= 0
+    left = squared_residual(beta_d.double(), beta_b.double())
+    return torch.where(unexplained > 0, 1.0 - left / unexplained.clamp_min(1e-300), torch.zeros_like(left))
 
 
 def sfm_observation_table(model: Any) -> Any:

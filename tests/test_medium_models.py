@@ -169,8 +169,10 @@ def test_uniform_medium_renders_as_seathru_with_equal_densities():
     torch.testing.assert_close(out.rgb, expected, rtol=1e-5, atol=1e-6)
 
 
-def evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.07, 0.2, 0.39), far_range=None):
-    return MediumEvidence(backscatter_share=share, beta_D=beta_D, beta_B=beta_B, B_inf=B_inf, far_range=far_range)
+def evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.07, 0.2, 0.39), far_range=None, explained=None):
+    return MediumEvidence(
+        backscatter_share=share, beta_D=beta_D, beta_B=beta_B, B_inf=B_inf, far_range=far_range, explained=explained
+    )
 
 
 @pytest.mark.parametrize(
@@ -179,6 +181,10 @@ def evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=
         (evidence(), "seathru"),  # the water demo's true medium
         (evidence(share=0.005), "none"),  # no backscatter: whatever the densities say
         (evidence(share=0.019), "none"),
+        # with a medium fit, what it explains decides, not the share: path-traced clear air's sky
+        (evidence(share=0.3, explained=0.013), "none"),
+        (evidence(share=0.005, explained=0.4), "seathru"),
+        (evidence(share=0.3, explained=0.12, beta_D=(0.12,) * 3, beta_B=(0.08, 0.07, 0.065)), "fog"),
         (evidence(share=0.021, beta_D=(1.2,) * 3, beta_B=(1.2,) * 3, B_inf=(0.6,) * 3), "fog"),
         (evidence(beta_D=(1.3, 1.25, 1.1), beta_B=(1.2, 1.3, 1.0), B_inf=(0.6, 0.58, 0.55)), "fog"),
         (evidence(beta_D=(1.0, 2.0, 1.0), beta_B=(1.0, 2.0, 1.0), B_inf=(0.6,) * 3), "uniform"),  # grey, not fog
@@ -199,6 +205,9 @@ def test_decision_rule_thresholds_are_the_rules():
     water = evidence()
     assert choose_medium_model(water, ChoiceRule(tie_ratio=1.5))[0] == "uniform"
     assert choose_medium_model(water, ChoiceRule(none_below_share=0.5))[0] == "none"
+    fitted = dataclasses.replace(water, explained=0.3)
+    assert choose_medium_model(fitted, ChoiceRule(none_below_share=0.5))[0] == "seathru"
+    assert choose_medium_model(fitted, ChoiceRule(none_below_explained=0.5))[0] == "none"
     grey = evidence(beta_D=(1.0, 1.1, 1.2), beta_B=(1.0, 1.1, 1.2), B_inf=(0.5, 0.55, 0.6))
     assert choose_medium_model(grey)[0] == "fog"
     assert choose_medium_model(grey, ChoiceRule(grey_attenuation_ratio=1.1))[0] == "uniform"
@@ -435,11 +444,12 @@ def test_auto_decides_from_the_sfm_fit_and_the_fit_then_ties_as_chosen(warm_up, 
 
 
 @pytest.mark.parametrize("medium_density, chosen", [(0.0, "none"), (0.8, "seathru")])
-def test_auto_reads_the_backscatter_share_from_the_fit_at_the_sfm_points(medium_density, chosen):
-    """The share that decides ``none`` is the medium fit's at the SfM observations, not the warm-up's:
-    the warm-up still shows a share of 0.3 (the object field has not yet taken the light the
-    backscatter held), but points whose colour does not change with range are clear air; the same
-    points seen through water (coloured densities, as the water demo) keep a medium."""
+def test_auto_decides_none_from_what_the_fit_explains_at_the_sfm_points(medium_density, chosen):
+    """``none`` is decided by how much of the SfM points' colour change the medium fit explains, not
+    by the warm-up's backscatter share: the warm-up still shows a share of 0.3 (the object field has
+    not yet taken the light the backscatter held), but points whose colour does not change with
+    range are clear air; the same points seen through water (coloured densities, as the water demo)
+    keep a medium."""
     beta_d = medium_density * np.array([1.3, 1.2, 0.9]) / 0.8
     beta_b = medium_density * np.array([0.95, 0.85, 0.7]) / 0.8
     warm_up = evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.6,) * 3)
