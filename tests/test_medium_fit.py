@@ -6,13 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from seathru_nerfstudio.data.sfm_observations import (
-    NATIVE_FOOTPRINT,
-    at_flattest_pixels,
-    footprint_sigmas,
-    gaussian_sample,
-    sfm_observations,
-)
+from seathru_nerfstudio.data.sfm_observations import at_flattest_pixels, sfm_observations
 from seathru_nerfstudio.medium_fit import (
     explained_variation,
     LOG_DENSITY_LIMIT,
@@ -168,39 +162,6 @@ def test_the_table_holds_true_ranges_and_colours_and_leaves_out_hidden_views():
     assert 0 < capped.num_points <= 6 < table.num_points
     with pytest.raises(ValueError, match="max_points"):
         sfm_observations(depths, images, np.stack(cams), *(np.full(3, v) for v in (F, F, C, C)), max_points=0)
-
-
-def test_every_view_reads_a_point_with_the_footprint_of_its_farthest_view():
-    """``footprint_sigmas``: the farthest view adds what its pixel lacks of one pixel; a view at half
-    the range (same focal length) or at the same range with twice the focal length reads two of its
-    own pixels, ``sqrt(4 - σ_native²)``; unobserved entries stay NaN; a 10x range spread is capped."""
-    nan = float("nan")
-    ranges = np.array([[4.0, 2.0, 4.0, nan], [1.0, nan, nan, 10.0]])
-    focal = np.array([100.0, 100.0, 200.0, 100.0])
-    sigma = footprint_sigmas(ranges, focal)
-    one, two = np.sqrt(1.0 - NATIVE_FOOTPRINT**2), np.sqrt(4.0 - NATIVE_FOOTPRINT**2)
-    np.testing.assert_allclose(sigma[0, :3], [one, two, two], rtol=1e-12)
-    assert np.isnan(sigma[0, 3]) and np.isnan(sigma[1, 1:3]).all()
-    np.testing.assert_allclose(sigma[1, [0, 3]], [3.0, one], rtol=1e-12)
-
-
-def test_the_gaussian_footprint_damps_a_stripe_pattern_as_its_kernel_does():
-    """``gaussian_sample`` at pixel centres of ``cos(k x)`` returns ``cos(k x) Σ w_n cos(k n) / Σ w_n``
-    (the kernel's weights at whole-pixel offsets: the discrete transfer function), keeps a linear
-    ramp exactly (a symmetric kernel), and with σ = 0 reads the pixel itself."""
-    k = 2 * np.pi / 6.0
-    cols = np.arange(40.0)
-    stripes = np.tile(np.cos(k * cols)[None, :, None], (40, 1, 3))
-    u, v = np.array([20.5, 21.5]), np.array([20.5, 20.5])
-    for sigma in (0.7, 1.5):
-        offsets = np.arange(-int(np.ceil(3 * sigma)), int(np.ceil(3 * sigma)) + 1)
-        weights = np.exp(-(offsets**2) / (2 * sigma**2))
-        damping = float((weights * np.cos(k * offsets)).sum() / weights.sum())
-        read = gaussian_sample(stripes, u, v, np.full(2, sigma))
-        np.testing.assert_allclose(read, np.cos(k * (u - 0.5))[:, None] * damping * np.ones(3), atol=1e-12)
-    ramp = np.tile((0.01 * cols)[None, :, None], (40, 1, 3))
-    np.testing.assert_allclose(gaussian_sample(ramp, u + 0.3, v, np.array([1.2, 2.0])), (0.01 * (u - 0.2))[:, None] * np.ones(3), atol=1e-12)
-    np.testing.assert_allclose(gaussian_sample(stripes, u, v, np.zeros(2)), stripes[20, [20, 21]], atol=1e-12)
 
 
 def test_points_move_at_their_depth_to_the_flattest_pixel_within_reach():

@@ -19,16 +19,6 @@ reads that as attenuation. Offline, with the true veiling light, on the three de
 (turbid) and −2, +1, +3% (fog) at the SfM pixels; moved to the flattest pixel within 2 px at the
 same z-depth (the surface taken as locally facing the camera), by +2, +1, 0%, +1, −4, +1% and
 −1, +1, 0%. Points sampled at low-texture pixels with their true depth fit within 1–3%.
-
-Why a matched footprint: a pixel covers ``z / f`` world units at range ``z``, so a farther view
-averages a point's colour over more of the surface around it. Between views at different ranges
-that pulls a point's colour towards its neighbourhood's mean, as a medium pulls it towards the
-veil. Each colour is therefore read with a Gaussian footprint of the same world size in every
-view: one pixel of the farthest view that sees the point (:func:`footprint_sigmas`,
-:func:`gaussian_sample`). The wider footprint also averages Monte Carlo and sensor noise. On
-the path-traced scenes, under the veil ``auto`` decides with, the share of the points' colour change
-between views that the medium fit explains went from 12% to 47% (coastal, red) and 14% to 39%
-(fog, blue); in clear air it stayed at 1%; docs/history.md, 2026-11-27.
 """
 
 from __future__ import annotations
@@ -76,49 +66,6 @@ def bilinear(image: npt.NDArray[np.floating], u: npt.NDArray[np.float64], v: npt
         + image[y1, x0] * (1 - ax) * ay
         + image[y1, x1] * ax * ay
     )
-
-
-NATIVE_FOOTPRINT = 12 ** -0.5
-"""The footprint a pixel already has, as a Gaussian's σ in pixels: a box one pixel wide."""
-
-MAX_FOOTPRINT = 3.0
-"""The widest footprint read (σ, pixels): a point seen at ranges more than 3x apart is read
-with its nearest views a little sharper than its farthest."""
-
-
-def footprint_sigmas(ranges: npt.NDArray[np.floating], focal: npt.NDArray[np.floating]) -> npt.NDArray[np.float64]:
-    """The Gaussian σ (pixels) to blur each observation by so that every view of a point reads the
-    same world footprint: one pixel of its farthest view, ``s_p = max_v z_pv / f_v`` world units.
-    In view ``v`` that is ``s_p f_v / z_pv`` pixels, of which the pixel itself supplies
-    :data:`NATIVE_FOOTPRINT`: ``σ = sqrt((s_p f_v / z_pv)² - σ_native²)``, at most :data:`MAX_FOOTPRINT`.
-
-    ``ranges``: (P, V) world units, NaN where not observed (NaN out there too); ``focal``: (V,) pixels."""
-    ranges = np.asarray(ranges, dtype=np.float64)
-    per_pixel = ranges / np.asarray(focal, dtype=np.float64)[None, :]  # world units a pixel covers
-    seen = np.isfinite(per_pixel)
-    widest = np.max(np.where(seen, per_pixel, -np.inf), axis=1, keepdims=True)
-    wanted = widest / np.where(seen, per_pixel, 1.0)  # pixels, >= 1
-    sigma = np.sqrt(np.clip(wanted**2 - NATIVE_FOOTPRINT**2, 0.0, MAX_FOOTPRINT**2))
-    return np.where(seen, sigma, np.nan)
-
-
-def gaussian_sample(
-    image: npt.NDArray[np.floating], u: npt.NDArray[np.float64], v: npt.NDArray[np.float64], sigma: npt.NDArray[np.float64]
-) -> npt.NDArray[np.float64]:
-    """``image`` (H, W, C) averaged around each ``(u, v)`` (pixel coordinates as :func:`bilinear`)
-    with normalised Gaussian weights ``e^{-(dx² + dy²) / (2 σ²)}`` over whole-pixel offsets within
-    ``3 σ``, each read bilinearly; ``σ = 0`` is :func:`bilinear`. Returns (N, C)."""
-    sigma = np.clip(np.asarray(sigma, dtype=np.float64), 0.0, None)
-    radius = int(np.ceil(3.0 * sigma.max())) if sigma.size else 0
-    total = np.zeros((len(u), image.shape[2]))
-    weight_sum = np.zeros((len(u), 1))
-    spread = np.maximum(2.0 * sigma**2, 1e-12)[:, None]
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            weight = np.exp(-(dx * dx + dy * dy) / spread)  # 1 at the centre; ~0 off it for σ = 0
-            total += weight * bilinear(image, u + dx, v + dy)
-            weight_sum += weight
-    return total / weight_sum
 
 
 def at_flattest_pixels(
@@ -182,8 +129,7 @@ def sfm_observations(
             already treats as the same surface); 0: the SfM pixels as they are.
 
     ``images`` is read one view at a time (``images[j]``), so it may load lazily; with
-    ``flattest_within`` each is read twice. Colours are read with a matched footprint
-    (:func:`footprint_sigmas`).
+    ``flattest_within`` each is read twice.
     """
     if max_points_per_view < 1 or max_points < 1 or window < 0 or not depth_tolerance > 0 or flattest_within < 0:
         raise ValueError(
@@ -203,7 +149,7 @@ def sfm_observations(
         return SfmObservations(np.zeros((0, len(depths))), np.zeros((0, len(depths), 3)))
     xyz = np.concatenate(points)
     ranges = np.full((len(xyz), len(depths)), np.nan)
-    pixels = np.full((len(xyz), len(depths), 2), np.nan)
+    colours = np.full((len(xyz), len(depths), 3), np.nan)
     for j, depth in enumerate(depths):
         height, width = depth.shape
         pu, pv, ahead = project(xyz, c2w[j], fx[j], fy[j], cx[j], cy[j])
@@ -215,14 +161,8 @@ def sfm_observations(
                 known = depth[np.clip(rows + dy, 0, height - 1), np.clip(cols + dx, 0, width - 1)]
                 visible |= (known > 0) & (np.abs(known - ahead[inside]) < depth_tolerance * ahead[inside])
         seen = np.nonzero(inside)[0][visible]
+        image = np.asarray(images[j], dtype=np.float64)
         ranges[seen, j] = np.linalg.norm(xyz[seen] - c2w[j, :, 3], axis=-1)
-        pixels[seen, j, 0], pixels[seen, j, 1] = pu[seen], pv[seen]
-    sigmas = footprint_sigmas(ranges, np.sqrt(np.asarray(fx, dtype=np.float64) * np.asarray(fy, dtype=np.float64)))
-    colours = np.full((len(xyz), len(depths), 3), np.nan)
-    for j in range(len(depths)):
-        seen = np.nonzero(np.isfinite(ranges[:, j]))[0]
-        if seen.size:
-            image = np.asarray(images[j], dtype=np.float64)[..., :3]
-            colours[seen, j] = gaussian_sample(image, pixels[seen, j, 0], pixels[seen, j, 1], sigmas[seen, j])
+        colours[seen, j] = bilinear(image, pu[seen], pv[seen])
     multi = np.isfinite(ranges).sum(axis=1) >= 2  # one view alone says nothing about the medium
     return SfmObservations(ranges=ranges[multi], colours=colours[multi])
