@@ -17,11 +17,11 @@ against a fitted 0.07 and a true 0.09, so the densities looked coloured and uneq
    path-traced clear air with a bright sky the fit put 14-18% of the light in backscatter (the sky,
    learned as veiling light, and the colour changes that a pixel's footprint makes between views,
    which converge on a neighbourhood's mean as a medium's converge on its veil), yet it explains
-   1.2% of the change; path-traced coastal water 12%, fog 14%, the formula demos 32-37% (0.03% the
-   clear demo; docs/history.md, 2026-11-27). Without SfM
-   observations, the warm-up's backscatter share of the image must reach
-   :attr:`ChoiceRule.none_below_share` for a medium: every scattering medium that is lit shows
-   backscatter, and without it the attenuation is not identifiable (the object colour can absorb it).
+   1.2% of the change; path-traced coastal water 12%, turbid 10%, fog 14%, the formula demos 32-37%
+   (0.03% the clear demo; docs/history.md, 2026-11-27). Without SfM observations, the warm-up's
+   backscatter share of the image must reach :attr:`ChoiceRule.none_below_share` for a medium: every
+   scattering medium that is lit shows backscatter, and without it the attenuation is not
+   identifiable (the object colour can absorb it).
 2. ``fog`` if the densities are grey: the attenuation's channels within
    :attr:`ChoiceRule.grey_attenuation_ratio`, the backscatter density's within the looser
    :attr:`ChoiceRule.grey_backscatter_ratio`.
