@@ -18,10 +18,10 @@ FIRST_STAGE = 40
 DECISION = 220
 """Water's decision step."""
 CLEAR_AIR_DECISION = 120
-"""Clear air's decision step, early: the share that decides ``none`` is the medium fit's at the SfM
-points (below 1e-4 on this scene from the first stage on). The warm-up's share waited for the object
-field: 0.007 at step 420 with torch seeded 0, but 0.030 with seed 1 (``seathru``); with the fit's
-share both seeds give ``none`` at step 120 (2026-11-27)."""
+"""Clear air's decision step, early: ``none`` is decided by how much of the SfM points' colour change
+between views the medium fit explains, which does not wait for the object field. The warm-up's
+backscatter share did: 0.007 at step 420 with torch seeded 0, but 0.030 with seed 1 (``seathru``;
+2026-11-27)."""
 
 
 def train_auto(preset: str, root: Path, decision: int = DECISION):
