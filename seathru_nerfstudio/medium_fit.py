@@ -321,8 +321,9 @@ def explained_variation(
     sums over the observed entries (``NaN`` where not observed), ``J a + B`` the medium's prediction
     with each point's least-squares colour (:func:`best_colours`), ``Ī_p`` the point's mean colour
     (the prediction without a medium). 1: the medium explains every change; 0: none of it, and 0
-    where the colours do not change at all (nothing to explain). Densities in 1/world unit, ranges in
-    world units, colours linear."""
+    where the colours do not change at all (nothing to explain) or the medium fits them worse than no
+    medium (the ratio, which may overflow where the change is tiny, is clamped into [0, 1]).
+    Densities in 1/world unit, ranges in world units, colours linear."""
     seen = torch.isfinite(ranges) & torch.isfinite(colours).all(dim=-1)
     observed = seen.double()
     z = torch.where(seen, ranges, torch.zeros_like(ranges)).double()
@@ -335,7 +336,8 @@ def explained_variation(
 
     unexplained = squared_residual(no_medium, no_medium)  # Σ (I - Ī_p)² for colours >= 0
     left = squared_residual(beta_d.double(), beta_b.double())
-    return torch.where(unexplained > 0, 1.0 - left / unexplained.clamp_min(1e-300), torch.zeros_like(left))
+    share = (1.0 - left / unexplained.clamp_min(1e-300)).clamp(0.0, 1.0)  # -inf (overflow) -> 0
+    return torch.where(unexplained > 0, share, torch.zeros_like(share))
 
 
 def sfm_observation_table(model: Any) -> Any:

@@ -392,6 +392,13 @@ def test_the_explained_variation_is_the_medium_s_share_of_the_colour_change_betw
     torch.testing.assert_close(explained_variation(ranges, drawn, veil, zero, zero), zero)
     still = colour.expand(30, 4, 3).clone()
     torch.testing.assert_close(explained_variation(ranges, still, veil, beta_d, beta_b), zero)
+    # a medium that fits worse than none explains nothing (unclamped: -7.5, -48, -181), nor does one
+    # on a change of 1e-155 whose square underflows (unclamped: about -5e300)
+    wrong = explained_variation(ranges, drawn, veil, 20 * beta_d, 0.01 * beta_b)
+    torch.testing.assert_close(wrong, zero)
+    barely = still.clone()
+    barely[:, 0] += 1e-155
+    assert torch.equal(explained_variation(ranges, barely, veil, beta_d, beta_b), zero)
 
     # one point at ranges 1 and 2, only attenuation 1 /world unit: a = e^-1, e^-2
     z = torch.tensor([[1.0, 2.0]], dtype=torch.float64)
