@@ -18,7 +18,9 @@ against a fitted 0.07 and a true 0.09, so the densities looked coloured and uneq
    learned as veiling light, and the colour changes that a pixel's footprint makes between views,
    which converge on a neighbourhood's mean as a medium's converge on its veil), yet it explains
    1.2% of the change; path-traced coastal water 12%, turbid 10%, fog 14%, the formula demos 32-37%
-   (0.03% the clear demo; docs/history.md, 2026-11-27). Without SfM observations, the warm-up's
+   (0.03% the clear demo; docs/history.md, 2026-11-27). This test needs no training, so it is made
+   before the first step (:meth:`AutoMediumChoice.clear_air_before_training`), and again at the
+   decision step. Without SfM observations, the warm-up's
    backscatter share of the image must reach :attr:`ChoiceRule.none_below_share` for a medium: every
    scattering medium that is lit shows backscatter, and without it the attenuation is not
    identifiable (the object colour can absorb it).
@@ -148,9 +150,11 @@ class AutoMediumChoice:
     """``auto`` in training, as a callback: it gathers :class:`MediumEvidence` over the
     ``research.auto_evidence_steps`` before ``research.auto_decision_step``, then sets the model's
     ``medium_model_code`` to :func:`choose_medium_model`'s choice. Only the tying of the medium
-    changes; for ``none`` the object field and the proposal networks restart from their initial
-    state (what they learned under a medium makes up for an attenuation clear air does not have),
-    and for ``fog``/``uniform``/``basic`` the model blends from ``seathru`` (``medium_model_step``)."""
+    changes; for ``none`` decided there the object field and the proposal networks restart from
+    their initial state (what they learned under a medium makes up for an attenuation clear air
+    does not have), and for ``fog``/``uniform``/``basic`` the model blends from ``seathru``
+    (``medium_model_step``). Where the SfM fit shows clear air, ``none`` is decided before training
+    (:meth:`clear_air_before_training`), with nothing to restart."""
 
     def __init__(self, model: Any) -> None:
         self.model = model
@@ -229,9 +233,45 @@ class AutoMediumChoice:
         )
         return chosen, f"from the SfM fit ({int(certain.sum())} of 3 channels)"
 
+    def clear_air_before_training(self, step: int) -> bool:
+        """Before the first training step, where there are SfM observations: decide ``none`` already if
+        the medium fit explains too little of their colour change (rule 1). The run is then ``none``
+        from its first step, as if it had been asked for. Returns whether it decided.
+
+        The share needs no training: six free densities absorb the veiling light the fit is given. In
+        its best channel, under the untrained grey veil (0.5) against the veil learned by step 499:
+        path-traced clear air 0.013 (0.013), coastal water 0.113 (0.118), fog 0.145 (0.144), the water
+        and fog demos 0.370 and 0.328 (0.368, 0.318), the clear demo 0.0003 (0.0003)
+        (docs/history.md, 2026-11-28). Deciding at the decision step instead restarted the object
+        field there, 500 steps into the run."""
+        model = self.model
+        if self.decided or step != 0 or not model.fits_medium:
+            return False
+        table = sfm_observation_table(model)
+        if table is None:
+            return False
+        _, veil, fit = fit_model_medium(model, table, tie="seathru")
+        ranges, colours = torch.from_numpy(table.ranges), torch.from_numpy(table.colours)
+        explained = float(explained_variation(ranges, colours, veil, fit.attenuation, fit.backscatter).max())
+        rule = self.model.config.research.auto_rule
+        if explained >= rule.none_below_explained:
+            CONSOLE.print(
+                f"seathru: the medium explains {explained:.3f} of the SfM points' colour change "
+                f"(>= {rule.none_below_explained:g}); auto decides at step {model.config.research.auto_decision_step}"
+            )
+            return False
+        model.medium_model_code.fill_(MEDIUM_MODELS.index("none"))
+        model.contract_for_medium_model()
+        self.initial_object = None
+        CONSOLE.print(
+            f"[bold]seathru: medium model auto -> none[/] (the medium explains {explained:.3f} < "
+            f"{rule.none_below_explained:g} of the SfM points' colour change, before training)"
+        )
+        return True
+
     def after_step(self, step: int, optimizers: Any = None) -> None:
-        """At ``research.auto_decision_step``: decide. ``optimizers``: the trainer's, whose state of
-        the restarted parameter groups is cleared."""
+        """At ``research.auto_decision_step``: decide. ``optimizers``: the trainer's, whose state of the
+        restarted parameter groups is cleared."""
         model = self.model
         if self.decided or not TrainingPhases(model.config, step).reached(model.config.research.auto_decision_step):
             return
@@ -245,6 +285,7 @@ class AutoMediumChoice:
         if chosen == "none" and self.initial_object is not None:
             model.field.load_state_dict(self.initial_object["field"])
             model.proposal_networks.load_state_dict(self.initial_object["proposal_networks"])
+            model.contract_for_medium_model()
             for group in ("fields", "proposal_networks"):
                 if optimizers is not None and group in optimizers.optimizers:
                     optimizers.optimizers[group].state.clear()  # Adam restarts with the parameters

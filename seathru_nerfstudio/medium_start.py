@@ -131,7 +131,7 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
     config = model.config
     if not TrainingPhases(config, step).ends(config.medium_first_steps) or config.medium_scope != "scene":
         return
-    if config.research.medium_oracle is not None or config.medium_model == "none":
+    if config.research.medium_oracle is not None or model.medium_model == "none":
         return  # an oracle is the medium; clear air renders none
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:

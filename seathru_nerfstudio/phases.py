@@ -3,11 +3,12 @@
 The timeline of a medium model (defaults in brackets)::
 
     0 ─ first stage ─ 200 ─ full model ─ 500 ─ blend ─ 700 ─ full model ─ end
-        image shows an       object field   auto decides,    medium moves to auto's
-        empty scene: the     enters; strong medium fitted    choice, object density
-        veiling light and    binary prior;  to the SfM       held; (``none``: the
-        the SfM geometry     backscatter    points, then     object field restarts
-        learn                excess loss    held             as nerfacto, no blend)
+    │   image shows an       object field   auto decides,    medium moves to auto's
+    │   empty scene: the     enters; strong medium fitted    choice, object density
+    │   veiling light and    binary prior;  to the SfM       held; (``none`` here: the
+    │   the SfM geometry     backscatter    points, then     object field restarts
+    │   learn                excess loss    held             as nerfacto, no blend)
+    └ auto: ``none`` before training if the SfM fit explains too little; the run is ``none`` throughout
 
 * ``medium_first_steps`` (200): the object colour waits; the object *density* learns from the SfM
   depths and the empty-space prior; every ray shows the veiling light, which settles at the

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Optional
 
 import pytest
 import numpy as np
@@ -393,20 +394,22 @@ def test_the_prior_takes_its_early_weight_up_to_the_medium_fit_and_its_full_weig
     )
 
 
-def decide_on_sfm_points(seed: int, beta_d, beta_b, warm_up: MediumEvidence):
-    """A tiny ``auto`` model (deciding at step 40, its medium fit at 40 too) whose SfM table holds 200
-    points in 6 views at ranges 1-3, seen under its own veil through ``beta_d``, ``beta_b`` (1/world
-    unit); ``warm_up`` fed as the evidence of steps 20-39, then step 39's callbacks run."""
+def decide_on_sfm_points(seed: int, beta_d, beta_b, warm_up: Optional[MediumEvidence]):
+    """A tiny ``auto`` model (first stage 10 steps, deciding at step 40, its medium fit at 40 too)
+    whose SfM table holds 200 points in 6 views at ranges 1-3, seen under its own veil through
+    ``beta_d``, ``beta_b`` (1/world unit); ``warm_up`` fed as the evidence of steps 20-39, then step
+    39's callbacks run (``None``: only those before step 0)."""
     from nerfstudio.engine.callbacks import TrainingCallbackAttributes, TrainingCallbackLocation
 
     from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
     from seathru_nerfstudio.data.sfm_observations import SfmObservations
+    from seathru_nerfstudio.metadata_keys import EXTENT_KEY
 
     rng = np.random.default_rng(seed)
     ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
     table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
     model = tiny_model(
-        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table},
+        metadata={SCALE_KEY: 1.0, SFM_OBSERVATIONS_KEY: table, EXTENT_KEY: 12.0},
         medium_model="auto", medium_first_steps=10, auto_decision_step=40, medium_fit_step=40,
     )  # fmt: skip
     veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double()).numpy()
@@ -414,6 +417,10 @@ def decide_on_sfm_points(seed: int, beta_d, beta_b, warm_up: MediumEvidence):
     beta_d, beta_b = np.asarray(beta_d), np.asarray(beta_b)
     table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
     callbacks = model.get_training_callbacks(TrainingCallbackAttributes(None, None, None, None))
+    if warm_up is None:  # only what runs before the first step
+        for callback in callbacks:
+            callback.run_callback_at_location(0, TrainingCallbackLocation.BEFORE_TRAIN_ITERATION)
+        return model
     feed_evidence(model, warm_up, range(20, 40))
     for callback in callbacks:
         callback.run_callback_at_location(39, TrainingCallbackLocation.AFTER_TRAIN_ITERATION)
@@ -455,3 +462,20 @@ def test_auto_decides_none_from_what_the_fit_explains_at_the_sfm_points(medium_d
     warm_up = evidence(share=0.3, beta_D=(1.3, 1.2, 0.9), beta_B=(0.95, 0.85, 0.7), B_inf=(0.6,) * 3)
     model = decide_on_sfm_points(3, beta_d, beta_b, warm_up)
     assert model.medium_model == chosen
+
+
+@pytest.mark.parametrize("medium_density, chosen", [(0.0, "none"), (0.8, "seathru")])
+def test_auto_decides_none_before_training_from_the_sfm_points(medium_density, chosen):
+    """Where the fit explains too little of the SfM points' colour change, ``auto`` decides ``none``
+    before the first step, under the untrained veiling light: no blend, no copy kept to restart
+    from, and the run is ``none`` throughout. Points seen through water leave the decision to its
+    step (still undecided, rendered as ``seathru``)."""
+    beta_d = medium_density * np.array([1.3, 1.2, 0.9]) / 0.8
+    beta_b = medium_density * np.array([0.95, 0.85, 0.7]) / 0.8
+    model = decide_on_sfm_points(3, beta_d, beta_b, None)
+    assert model.medium_model == chosen
+    decided = int(model.medium_model_code) != UNDECIDED
+    assert decided == (chosen == "none")
+    assert int(model.medium_model_step) == -1
+    assert (model.auto_choice.initial_object is None) == decided
+    assert model.contraction_radius == (1.0 if decided else 12.0)  # clear air: nerfacto's contraction
