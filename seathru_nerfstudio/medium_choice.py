@@ -243,7 +243,8 @@ class AutoMediumChoice:
         path-traced clear air 0.013 (0.013), coastal water 0.113 (0.118), fog 0.145 (0.144), the water
         and fog demos 0.370 and 0.328 (0.368, 0.318), the clear demo 0.0003 (0.0003)
         (docs/history.md, 2026-11-28). Deciding at the decision step instead restarted the object
-        field there, 500 steps into the run."""
+        field there, 500 steps into the run: `none` forced from step 0 gave 32.27 dB on path-traced
+        clear air against 31.89 with the restart, 34.26 against 33.49 on the clear demo."""
         model = self.model
         if self.decided or step != 0 or not model.fits_medium:
             return False
@@ -261,7 +262,6 @@ class AutoMediumChoice:
             )
             return False
         model.medium_model_code.fill_(MEDIUM_MODELS.index("none"))
-        model.contract_for_medium_model()
         self.initial_object = None
         CONSOLE.print(
             f"[bold]seathru: medium model auto -> none[/] (the medium explains {explained:.3f} < "
@@ -285,7 +285,6 @@ class AutoMediumChoice:
         if chosen == "none" and self.initial_object is not None:
             model.field.load_state_dict(self.initial_object["field"])
             model.proposal_networks.load_state_dict(self.initial_object["proposal_networks"])
-            model.contract_for_medium_model()
             for group in ("fields", "proposal_networks"):
                 if optimizers is not None and group in optimizers.optimizers:
                     optimizers.optimizers[group].state.clear()  # Adam restarts with the parameters

@@ -50,7 +50,7 @@ from seathru_nerfstudio.medium_start import apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
-from seathru_nerfstudio.object_field import FixedDirectionEncoding, scene_collider, scene_contraction_radius, set_contraction
+from seathru_nerfstudio.object_field import FixedDirectionEncoding, contract_at_scene, scene_collider
 from seathru_nerfstudio.oracles import oracle_medium, read_true_medium
 from seathru_nerfstudio.phases import TrainingPhases
 from seathru_nerfstudio.rendering import SeathruRender, object_weights, render_seathru
@@ -95,10 +95,8 @@ class SeathruModel(NerfactoModel):
         self.auto_choice = AutoMediumChoice(self) if self.config.medium_model == "auto" else None
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
-        self.contraction_radius = 1.0
+        self.contraction_radius = contract_at_scene(self.field, self.proposal_networks, metadata)
         """Scene units at which the hash grids' contraction starts (1: nerfacto's)."""
-        self.contract_for_medium_model()
-        self.register_load_state_dict_post_hook(lambda model, _keys: model.contract_for_medium_model())
         self.far_range: Optional[float] = (
             float(metadata["far_plane"]) / self.world_scale if "far_plane" in metadata else None
         )
@@ -109,18 +107,6 @@ class SeathruModel(NerfactoModel):
         self.viewer_controls = viewer.SeathruViewerControls(linear_data=self.config.color_space == "linear")
         self.medium_controls_enabled = True
         """Renders outside training take the viewer's water controls; SeathruPipeline turns this off to evaluate."""
-
-    def contract_for_medium_model(self) -> None:
-        """The object field's contraction for the medium model in use (called again whenever it changes,
-        and after a checkpoint loads): with a medium, from the scene's extent
-        (:func:`~seathru_nerfstudio.object_field.scene_contraction_radius`), so that far surfaces seen
-        through water keep their resolution; in clear air (``none``), nerfacto's, whose resolution
-        falls with distance as a pixel's footprint grows (path-traced clear air, ``none``: 33.91 dB
-        against 33.03 at the scene's extent; docs/history.md, 2026-11-28)."""
-        metadata = self.kwargs.get("metadata") or {}
-        radius = 1.0 if self.medium_model == "none" else scene_contraction_radius(metadata)
-        if radius != self.contraction_radius:
-            self.contraction_radius = set_contraction(self.field, self.proposal_networks, radius)
 
     def _build_medium(self, metadata) -> torch.nn.Module:
         research = self.config.research
