@@ -142,6 +142,14 @@ def choose_medium_model(evidence: MediumEvidence, rule: ChoiceRule = ChoiceRule(
     return "seathru", f"{facts}: no simpler model fits"
 
 
+def _fit_and_explained_share(model: Any, table: Any) -> Tuple[Any, float]:
+    """The medium fit (six free) to the SfM observation table under the veiling light the model has
+    now, and the largest share over the channels of the points' colour change it explains."""
+    _, veil, fit = fit_model_medium(model, table, tie="seathru")
+    ranges, colours = torch.from_numpy(table.ranges), torch.from_numpy(table.colours)
+    return fit, float(explained_variation(ranges, colours, veil, fit.attenuation, fit.backscatter).max())
+
+
 def _state_copy(module: torch.nn.Module) -> Dict[str, torch.Tensor]:
     return {name: value.detach().clone() for name, value in module.state_dict().items()}
 
@@ -217,9 +225,7 @@ class AutoMediumChoice:
         table = sfm_observation_table(model)
         if not model.fits_medium or table is None:
             return evidence, "from the warm-up (no SfM fit)"
-        _, veil, fit = fit_model_medium(model, table, tie="seathru")
-        ranges, colours = torch.from_numpy(table.ranges), torch.from_numpy(table.colours)
-        explained = float(explained_variation(ranges, colours, veil, fit.attenuation, fit.backscatter).max())
+        fit, explained = _fit_and_explained_share(model, table)
         evidence = dataclasses.replace(evidence, explained=explained)
         certain = fit.attenuation_log_error <= model.config.research.medium_fit_max_log_error
         if not bool(certain.any()):
@@ -243,7 +249,7 @@ class AutoMediumChoice:
         path-traced clear air 0.013 (0.013), coastal water 0.113 (0.118), fog 0.145 (0.144), the water
         and fog demos 0.370 and 0.328 (0.368, 0.318), the clear demo 0.0003 (0.0003)
         (docs/history.md, 2026-11-28). Deciding at the decision step instead restarted the object
-        field there, 500 steps into the run: `none` forced from step 0 gave 32.27 dB on path-traced
+        field there, 500 steps into the run: ``none`` forced from step 0 gave 32.27 dB on path-traced
         clear air against 31.89 with the restart, 34.26 against 33.49 on the clear demo."""
         model = self.model
         if self.decided or step != 0 or not model.fits_medium:
@@ -251,10 +257,8 @@ class AutoMediumChoice:
         table = sfm_observation_table(model)
         if table is None:
             return False
-        _, veil, fit = fit_model_medium(model, table, tie="seathru")
-        ranges, colours = torch.from_numpy(table.ranges), torch.from_numpy(table.colours)
-        explained = float(explained_variation(ranges, colours, veil, fit.attenuation, fit.backscatter).max())
-        rule = self.model.config.research.auto_rule
+        _, explained = _fit_and_explained_share(model, table)
+        rule = model.config.research.auto_rule
         if explained >= rule.none_below_explained:
             CONSOLE.print(
                 f"seathru: the medium explains {explained:.3f} of the SfM points' colour change "
