@@ -43,7 +43,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.medium_field import tie_matrix
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
-from seathru_nerfstudio.open_water_veil import hold_open_water_veil
 from seathru_nerfstudio.oracles import replace_with_truth
 from seathru_nerfstudio.phases import TrainingPhases
 
@@ -379,8 +378,6 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     config = model.config
     if not (model.fits_medium and TrainingPhases(config, step).ends(config.medium_fit_step)):
         return
-    if model.medium_model != "none":
-        hold_open_water_veil(model, step, optimizers)  # the densities are fitted under the veil held
     table = sfm_observation_table(model)
     if table is None:
         CONSOLE.print(

@@ -48,7 +48,6 @@ from seathru_nerfstudio.medium_field import (
 )
 from seathru_nerfstudio.medium_start import apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
-from seathru_nerfstudio.open_water_veil import OpenWaterVeil
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
 from seathru_nerfstudio.object_field import FixedDirectionEncoding, contract_at_scene, scene_collider
@@ -90,10 +89,6 @@ class SeathruModel(NerfactoModel):
         """The step at which the blend from ``seathru`` to ``auto``'s choice starts (-1: no blend)."""
         self.register_buffer("densities_fitted", torch.zeros(6, dtype=torch.bool))
         """Which of ``beta_D`` (RGB) then ``beta_B`` (RGB) hold at their fit."""
-        self.register_buffer("veil_held", torch.zeros((), dtype=torch.bool))
-        """Whether the veiling light holds at the open water's colour (:mod:`~seathru_nerfstudio.open_water_veil`)."""
-        self.open_water_veil = OpenWaterVeil()
-        """The open water's colour, read from the training batches up to ``medium_fit_step``."""
         self.register_buffer("fit_log_error", torch.full((3,), -1.0, dtype=torch.float64))
         """The medium fit's standard error of ``ln beta_D`` per channel (-1: no fit yet; finite, as
         every checkpointed value must be)."""
@@ -152,12 +147,6 @@ class SeathruModel(NerfactoModel):
     @property
     def medium_blend(self) -> float:
         return self.phases.medium_blend
-
-    @property
-    def _before_fit(self) -> bool:
-        """In training, before ``medium_fit_step`` (while the open water's colour is read)."""
-        fit_step = self.config.medium_fit_step
-        return self.train_step is not None and fit_step is not None and self.train_step < fit_step
 
     @property
     def object_frozen(self) -> bool:
@@ -273,7 +262,7 @@ class SeathruModel(NerfactoModel):
         if self.training:  # the fitted densities hold; all-False holds nothing (no host sync to ask)
             held_attn, held_bs = self.densities_fitted[:3], self.densities_fitted[3:]
             learned = MediumOutputs(
-                rgb=torch.where(self.veil_held, learned.rgb.detach(), learned.rgb),
+                rgb=learned.rgb,
                 sigma_attn=torch.where(held_attn, learned.sigma_attn.detach(), learned.sigma_attn),
                 sigma_bs=torch.where(held_bs, learned.sigma_bs.detach(), learned.sigma_bs),
             )
@@ -364,8 +353,6 @@ class SeathruModel(NerfactoModel):
             loss_dict["binary_prior_loss"] = prior_weight * binary_transmittance_loss(
                 outputs["transmittance"], scale=research.binary_prior_scale, empty_weight=self.config.binary_prior_empty_weight
             )
-        if self.training and self.fits_medium and not (self.object_frozen or self.clear_air) and self._before_fit:
-            self.open_water_veil.update(1.0 - outputs["accumulation"], image)
         if "backscatter_geometry_held" in outputs:
             loss_dict["backscatter_excess_loss"] = research.backscatter_excess_mult * backscatter_excess_loss(
                 outputs["backscatter_geometry_held"], image, eps=research.rawnerf_eps
