@@ -57,7 +57,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.diagnostics import CHANNELS
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS
-from seathru_nerfstudio.medium_fit import explained_variation, fit_model_medium, sfm_observation_table
+from seathru_nerfstudio.medium_fit import explained_variation, fit_model_medium, fit_replaces, sfm_observation_table
 from seathru_nerfstudio.phases import TrainingPhases
 
 RGB = Tuple[float, float, float]
@@ -217,8 +217,8 @@ class AutoMediumChoice:
 
     def fitted_evidence(self, evidence: MediumEvidence) -> Tuple[MediumEvidence, str]:
         """``evidence`` with the share of the SfM points' colour change that the medium fit (six
-        free) explains, and its densities channel by channel where the fit's standard error of
-        ``ln β_D`` is at most ``research.medium_fit_max_log_error``; and where they come from, in
+        free) explains, and its densities channel by channel where they replace the warm-up's
+        (:func:`~seathru_nerfstudio.medium_fit.fit_replaces`); and where they come from, in
         words. The explained share needs no such bound: where the fit cannot split ``β_D`` from
         ``β_B`` its log-errors are large, but how much of the change the pair explains is not."""
         model = self.model
@@ -227,7 +227,8 @@ class AutoMediumChoice:
             return evidence, "from the warm-up (no SfM fit)"
         fit, explained = _fit_and_explained_share(model, table)
         evidence = dataclasses.replace(evidence, explained=explained)
-        certain = fit.attenuation_log_error <= model.config.research.medium_fit_max_log_error
+        warm_up_attenuation = torch.tensor(evidence.beta_D, dtype=torch.float64)
+        certain = fit_replaces(fit, warm_up_attenuation, model.config.research.medium_fit_max_log_error)
         if not bool(certain.any()):
             return evidence, "from the warm-up (the SfM fit is uncertain)"
 

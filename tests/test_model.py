@@ -793,6 +793,7 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     divided by the scale; before that step nothing changes; a ray medium is left alone."""
     from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
     from seathru_nerfstudio.data.sfm_observations import SfmObservations
+    from seathru_nerfstudio.medium_fit import fit_model_medium
 
     rng = np.random.default_rng(0)
     beta_d, beta_b = np.array([1.3, 1.2, 0.9]), np.array([0.95, 0.85, 0.7])
@@ -808,12 +809,21 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     apply_medium_fit(m, 9)
     sigma = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
     torch.testing.assert_close(sigma * 2.0, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
-    # a fit whose errors exceed the bound keeps the trained densities, channel by channel
-    strict = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_fit_max_log_error=1e-300)  # below any error
+    # a fit whose errors exceed the bound keeps the trained densities it does not reject (noisy
+    # colours give it errors of some 0.05 in ln beta_D), and replaces those it rejects
+    noisy = SfmObservations(ranges=ranges, colours=table.colours + rng.normal(0.0, 0.02, table.colours.shape))
+    strict = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: noisy}, medium_fit_step=10, medium_first_steps=5, medium_fit_max_log_error=1e-300)  # below any error
+    _, _, fit = fit_model_medium(strict, noisy, tie="seathru")
+    assert (fit.attenuation_log_error > 0.01).all()
+    trained = torch.cat([fit.attenuation, fit.backscatter]) / 2.0
+    trained[0] *= float(torch.exp(4.0 * fit.attenuation_log_error[0]))  # red: rejected; green, blue: the fit's own values
+    strict.medium_field.set_densities(trained)
     kept = strict.medium_field.density_raw.detach().clone()
     apply_medium_fit(strict, 9)
-    torch.testing.assert_close(strict.medium_field.density_raw.detach(), kept)
-    assert not strict.densities_fitted.any()  # what the fit kept trains on
+    assert strict.densities_fitted.tolist() == [True, False, False, True, False, False]
+    torch.testing.assert_close(strict.medium_field.density_raw.detach()[[1, 2, 4, 5]], kept[[1, 2, 4, 5]])  # these train on
+    sigma_red = torch.nn.functional.softplus(strict.medium_field.density_raw.detach().double())[0] * 2.0
+    torch.testing.assert_close(sigma_red, fit.attenuation[0], rtol=1e-3, atol=0)
     with pytest.raises(ValueError, match="medium-fit-max-log-error"):
         tiny_model(medium_fit_max_log_error=float("nan"))
     # the fitted channels are held; the hold and the fit's errors survive a checkpoint
