@@ -328,7 +328,7 @@ def fit_replaces(
     trained 0.49, 0.30, 0.23, 4-5 standard errors away. Inverting the held-out views with the run's
     depth and veil, the fitted densities give a clean image of 24.8 / 28.6 dB (all / nearest third of
     the object pixels; ceiling 20.4 / 28.1), the trained ones 10.5 / 17.1 (docs/history.md,
-    2026-11-28, the fit that rejects the trained attenuation).
+    2026-11-28 (8bccf28), the fit replaces a trained attenuation it rejects).
 
     A non-finite error replaces nothing (every comparison with NaN or inf is false)."""
     error = fit.attenuation_log_error.double()
