@@ -36,7 +36,7 @@ from __future__ import annotations
 from typing import Any, Callable, NamedTuple
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Bool, Float
 from torch import Tensor
 
 from nerfstudio.utils.rich_utils import CONSOLE
@@ -315,8 +315,8 @@ and the observations reject it (:func:`fit_replaces`)."""
 
 def fit_replaces(
     fit: DensityFit, trained_attenuation: Float[Tensor, "3"], max_log_error: float
-) -> Float[Tensor, "3"]:
-    """Per channel (bool), whether the fit's densities replace the trained ones: where the fit is
+) -> Bool[Tensor, "3"]:
+    """Per channel, whether the fit's densities replace the trained ones: where the fit is
     precise (standard error ``s`` of ``ln β_D`` at most ``max_log_error``), or where it rejects the
     trained ``β_D`` (``|ln β_trained - ln β_fit| > REJECTION_Z s``). Densities in any one unit.
 
@@ -426,7 +426,8 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     if uncertain.all() and model.fit_oracle is None:  # nothing to replace: leave the parameters and Adam alone
         CONSOLE.print(
             f"[bold]seathru step {step}: medium fit to {table.num_observations} SfM observations kept the trained "
-            f"densities (standard error of ln beta_D {show(fit.attenuation_log_error)})"
+            f"densities, within {REJECTION_Z} standard errors of the fit (standard error of ln beta_D "
+            f"{show(fit.attenuation_log_error)}, fitted beta_D {show(fit.attenuation)} /m)"
         )
         return
     beta_d = torch.where(uncertain, densities[:3], fit.attenuation)
