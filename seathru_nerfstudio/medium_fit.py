@@ -325,10 +325,9 @@ def fit_replaces(
     the brightest SfM observations, above the truth. Where the fit is imprecise but far from it, the
     trained value is the worse of the two. Path-traced coastal water, 723 points (seed 42, step 499):
     the fit's ``s`` 0.14, 0.15, 0.27, its ``β_D`` 0.25, 0.14, 0.08 /m (truth 0.30, 0.17, 0.12), the
-    trained 0.49, 0.30, 0.23, 4-5 standard errors away. Inverting the held-out views with the run's
-    depth and veil, the fitted densities give a clean image of 24.8 / 28.6 dB (all / nearest third of
-    the object pixels; ceiling 20.4 / 28.1), the trained ones 10.5 / 17.1 (docs/history.md,
-    2026-11-28 (8bccf28), the fit replaces a trained attenuation it rejects).
+    trained 0.49, 0.30, 0.23, 4-5 standard errors away. The held-out views inverted with the run's
+    depth and veil: clean 24.8 / 28.6 dB (all / nearest third; ceiling 20.4 / 28.1) under the fitted
+    densities, 10.5 / 17.1 under the trained ones (docs/history.md, 2026-11-28 (8bccf28)).
 
     A non-finite error replaces nothing (every comparison with NaN or inf is false)."""
     error = fit.attenuation_log_error.double()
