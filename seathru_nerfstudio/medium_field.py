@@ -172,20 +172,7 @@ def _expand(values: Tensor, directions: Tensor) -> Tensor:
 
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
-    learned constants (sigmoid and softplus, as the MLP's heads), and the veiling light
-    brightens towards the surface:
-
-        c_med(d) = sigmoid(logit + rise · max(d_z, 0)),
-
-    ``d_z`` the ray direction's up component (nerfstudio orients the poses so that the cameras'
-    mean up is +z) and ``rise`` three learned numbers, 0 at the start. At and below the horizon,
-    where the surfaces are seen, the veil is the constant ``sigmoid(logit)`` of the SeaThru model.
-
-    Why the rise: light enters water and fog from above, so the open water is brighter looking
-    up (path-traced coastal water: blue 0.45 at the horizon, 0.56 at 10-20 degrees up). With one
-    colour for every ray, the object field filled the darker open water with matter and the veil
-    matched the brightest rays left open, 30-50% above what the surfaces see (docs/history.md).
-    Below the horizon no open water shows how the veil changes, so it is not extrapolated there.
+    learned constants, the same for every ray (sigmoid and softplus, as the MLP's heads).
 
     Cheaper than :class:`MediumField` and without its freedom to give every ray its own
     water, which on a homogeneous scene lets the medium explain scene content per ray.
@@ -199,7 +186,6 @@ class SceneMedium(nn.Module):
         super().__init__()
         rgb = torch.as_tensor(init_rgb, dtype=torch.float64).expand(3)
         self.rgb_logit = nn.Parameter(torch.logit(rgb).float().clone())
-        self.rgb_rise = nn.Parameter(torch.zeros(3))
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
         self.density_raw = nn.Parameter(torch.zeros(6))
         self.set_densities(densities)
@@ -216,20 +202,10 @@ class SceneMedium(nn.Module):
         learn in their own, slower optimiser group; the veiling light is seen directly in open water."""
         return [self.density_raw]
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs) -> None:
-        """A checkpoint from before the rise has none: its veil was the same in every direction."""
-        state_dict.setdefault(prefix + "rgb_rise", torch.zeros_like(self.rgb_rise))
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
-
-    def horizontal_veil(self) -> Float[Tensor, "3"]:
-        """``sigmoid(logit)``: the veil at and below the horizon, which the surfaces see (linear RGB)."""
-        return torch.sigmoid(self.rgb_logit)
-
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())
-        upward = torch.clamp(directions[..., 2:3].float(), min=0.0)
         return MediumOutputs(
-            rgb=torch.sigmoid(self.rgb_logit.float() + upward * self.rgb_rise.float()).expand(*directions.shape[:-1], 3),
+            rgb=_expand(torch.sigmoid(self.rgb_logit.float()), directions),
             sigma_attn=_expand(densities[:3], directions),
             sigma_bs=_expand(densities[3:], directions),
         )
