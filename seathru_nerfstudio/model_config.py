@@ -86,8 +86,8 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Start the densities so that the mean SfM range is this many attenuation lengths away (0: ``research.medium_init_density``); both are capped by the SfM observations when the object field enters (``medium_start``)."""
     object_view_dependent: bool = False
     """View-dependent object colour (nerfacto); off: Lambertian, as the official code."""
-    depth_loss_mult: float = 1e-2
-    """Weight of the DS-NeRF loss on the dataset's sparse SfM depths; 0: off."""
+    depth_loss_mult: float = 0.1
+    """Weight of the DS-NeRF loss on the dataset's sparse SfM depths (0: off); through a medium the images pin the range weakly."""
     diagnostics_every: int = 100
     """Print one line of decomposition diagnostics every this many steps; 0: never."""
     far_bound_margin: float = 2.0
