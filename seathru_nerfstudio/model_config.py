@@ -88,6 +88,8 @@ class SeathruModelConfig(NerfactoModelConfig):
     """View-dependent object colour (nerfacto); off: Lambertian, as the official code."""
     depth_loss_mult: float = 0.1
     """Weight of the DS-NeRF loss on the dataset's sparse SfM depths (0: off); through a medium the images pin the range weakly."""
+    clear_air_depth_loss_mult: float = 1e-2
+    """That weight under the ``none`` model, where the images alone pin the range (0: off)."""
     diagnostics_every: int = 100
     """Print one line of decomposition diagnostics every this many steps; 0: never."""
     far_bound_margin: float = 2.0
@@ -161,7 +163,8 @@ class SeathruModelConfig(NerfactoModelConfig):
                 "--pipeline.model.research.binary-prior-early-mult must be None or >= 0 and backscatter-excess-steps >= 0 "
                 f"(got {early} and {research.backscatter_excess_steps})"
             )
-        for name, value in (("binary-prior-mult", self.binary_prior_mult), ("depth-loss-mult", self.depth_loss_mult)):
+        for name, value in (("binary-prior-mult", self.binary_prior_mult), ("depth-loss-mult", self.depth_loss_mult),
+                            ("clear-air-depth-loss-mult", self.clear_air_depth_loss_mult)):
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"--pipeline.model.{name} must be finite and >= 0 (got {value})")
         if self.predict_normals:

@@ -5,7 +5,8 @@ contraction at the scene, and rays bounded by the SfM near and far bounds.
   view-dependent look must come from the medium, and multi-view consistency pins the colour.
 * **Contraction at the scene** (:class:`~seathru_nerfstudio.contraction.ContractionBeyond`): a
   forward-facing rig sees out of nerfstudio's unit cube, so its whole scene would lie in the
-  contracted shell; the contraction starts at the extent the cameras see up to the far bound.
+  contracted shell; with a medium the contraction starts at the extent the cameras see up to the
+  far bound. Clear air (``none``) keeps nerfacto's (see :meth:`SeathruModel.contract_for_medium_model`).
 * **Bounds** (:func:`scene_collider`): rays start at 0.9 of the SfM near bound (no dark screen in
   front of the lens) and end at ``far_bound_margin`` times the far bound (an unbounded field starts
   as an opaque wall behind the open water); the renderer adds the water outside in closed form.
@@ -18,6 +19,7 @@ from typing import Any, Mapping, Optional
 import torch
 from torch import nn
 
+from nerfstudio.field_components.spatial_distortions import SceneContraction
 from nerfstudio.model_components.scene_colliders import NearFarCollider
 
 from seathru_nerfstudio.contraction import ContractionBeyond
@@ -41,13 +43,17 @@ class FixedDirectionEncoding(nn.Module):
         return self.encoding(fixed).expand(directions.shape[0], -1)
 
 
-def contract_at_scene(field: nn.Module, proposal_networks: nn.ModuleList, metadata: Mapping[str, Any]) -> float:
-    """Give the object field and the proposal networks a contraction that starts at the scene's
-    extent (scene units; at least nerfacto's 1); returns the radius used."""
-    if EXTENT_KEY not in metadata:
-        return 1.0
-    radius = max(1.0, float(metadata[EXTENT_KEY]))
-    contraction = ContractionBeyond(radius)
+def scene_contraction_radius(metadata: Mapping[str, Any]) -> float:
+    """Where a medium model's contraction starts: the extent the cameras see up to the SfM far bound
+    (scene units; at least nerfacto's 1), or 1 without it."""
+    return max(1.0, float(metadata[EXTENT_KEY])) if EXTENT_KEY in metadata else 1.0
+
+
+def set_contraction(field: nn.Module, proposal_networks: nn.ModuleList, radius: float) -> float:
+    """Give the object field and the proposal networks one contraction that starts at ``radius``
+    (scene units): nerfstudio's own :class:`SceneContraction` at 1, :class:`ContractionBeyond`
+    beyond. Returns ``radius``."""
+    contraction = SceneContraction(order=float("inf")) if radius == 1.0 else ContractionBeyond(radius)
     field.spatial_distortion = contraction
     for network in proposal_networks:
         network.spatial_distortion = contraction

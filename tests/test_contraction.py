@@ -119,3 +119,26 @@ def test_the_model_contracts_beyond_the_extent_it_is_given() -> None:
     for model in (tiny_model(),):
         assert model.contraction_radius == 1.0
         assert not isinstance(model.field.spatial_distortion, ContractionBeyond)
+
+
+def test_clear_air_keeps_nerfactos_contraction_also_after_auto_chose_it_and_in_a_loaded_checkpoint() -> None:
+    """``none`` contracts as nerfacto whatever the scene's extent; a medium model from the extent. An
+    ``auto`` model that chose ``none`` switches at once, and a fresh ``auto`` model that loads its
+    checkpoint (the viewer, ``ns-render``, a resumed run) takes nerfacto's contraction from it."""
+    from tiny_training import tiny_model
+
+    from seathru_nerfstudio.medium_field import MEDIUM_MODELS
+
+    clear = tiny_model(metadata={EXTENT_KEY: 12.0}, medium_model="none")
+    assert clear.contraction_radius == 1.0 and type(clear.field.spatial_distortion) is SceneContraction
+    chosen = tiny_model(metadata={EXTENT_KEY: 12.0}, medium_model="auto")
+    assert chosen.contraction_radius == 12.0
+    chosen.medium_model_code.fill_(MEDIUM_MODELS.index("none"))
+    chosen.contract_for_medium_model()
+    assert chosen.contraction_radius == 1.0
+    loaded = tiny_model(metadata={EXTENT_KEY: 12.0}, medium_model="auto")
+    assert loaded.contraction_radius == 12.0
+    loaded.load_state_dict(chosen.state_dict())
+    assert loaded.medium_model == "none" and loaded.contraction_radius == 1.0
+    distortions = [loaded.field.spatial_distortion] + [net.spatial_distortion for net in loaded.proposal_networks]
+    assert all(type(d) is SceneContraction for d in distortions)

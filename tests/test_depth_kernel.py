@@ -79,3 +79,37 @@ def test_the_variance_stays_finite_for_huge_intervals():
         variance = depth_kernel_variance(starts, ends, torch.tensor([[0.1 * huge]], dtype=dtype), sigma_floor=0.01)
         assert torch.isfinite(variance).all()
         assert variance.item() >= 0.99 * torch.finfo(dtype).max  # capped at the top, not shrunk
+
+
+def test_clear_air_weighs_the_sfm_depths_by_its_own_weight():
+    """Under ``none`` the depth loss takes ``clear_air_depth_loss_mult``, with a medium
+    ``depth_loss_mult``: the same rays and weights give the same DS-NeRF loss, scaled by each."""
+    from nerfstudio.cameras.rays import RayBundle
+    from tiny_training import tiny_model
+
+    from seathru_nerfstudio.medium_field import MEDIUM_MODELS
+
+    generator = torch.Generator().manual_seed(3)
+    bundle = RayBundle(
+        origins=torch.randn(16, 3, generator=generator) * 0.1,
+        directions=torch.nn.functional.normalize(torch.randn(16, 3, generator=generator), dim=-1),
+        pixel_area=torch.full((16, 1), 1e-4),
+        camera_indices=torch.zeros(16, 1, dtype=torch.long),
+        metadata={"directions_norm": torch.ones(16, 1)},
+    )
+    depth = torch.full((16, 1), 0.6)
+    depth[8:] = 0.0  # unknown
+    batch = {"image": torch.rand(16, 3, generator=generator), "depth_image": depth}
+    model = tiny_model(medium_model="seathru", medium_first_steps=0, depth_loss_mult=0.1, clear_air_depth_loss_mult=0.01)
+    model.train()
+    losses = {}
+    for name in ("seathru", "none"):
+        model.medium_model_code.fill_(MEDIUM_MODELS.index(name))
+        torch.manual_seed(0)  # the proposal samplers' jitter
+        out = model(bundle)
+        losses[name] = model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))["depth_loss"]
+    assert model.clear_air and losses["none"] > 0
+    torch.testing.assert_close(losses["none"] / losses["seathru"], torch.tensor(0.1))
+    model.config.clear_air_depth_loss_mult = 0.0
+    out = model(bundle)
+    assert "depth_loss" not in model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))

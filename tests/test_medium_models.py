@@ -478,3 +478,4 @@ def test_auto_decides_none_before_training_from_the_sfm_points(medium_density, c
     assert decided == (chosen == "none")
     assert int(model.medium_model_step) == -1
     assert (model.auto_choice.initial_object is None) == decided
+    assert model.contraction_radius == (1.0 if decided else 12.0)  # clear air: nerfacto's contraction
