@@ -234,7 +234,8 @@ def small_scene(tmp_path_factory) -> Path:
 
 
 def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path) -> None:
-    """COLMAP numbers images in the order its extraction threads finish them, and its two-view
+    """COLMAP numbers images in the order its extraction threads finish them, its matcher on
+    several threads now and then keeps other matches (1 run in 85 under load), and its two-view
     RANSAC draws a new seed each run: without the fixes, the poses (and on harder captures the
     registered set) change from run to run."""
     from seathru_nerfstudio.data.sfm import run_sfm

@@ -184,8 +184,10 @@ def run_sfm(
     adjustment. ``work_dir`` receives ``database.db`` and the mapper's models.
 
     The same images give the same result: features are extracted on one thread (COLMAP numbers
-    the images in the order its threads finish them, and the mapper breaks ties by number), the
-    two-view RANSAC has a fixed seed, and the mapper runs on one thread with fixed seeds
+    the images in the order its threads finish them, and the mapper breaks ties by number), and
+    matched on one thread (on two, under load, about one run in a hundred matched other
+    features and gave other poses), the two-view RANSAC has a fixed seed, and the mapper runs on
+    one thread with fixed seeds
     (:func:`mapper_options`). While the best model holds less than :data:`RETRY_BELOW_FRACTION`
     of the images, the mapper runs again with the next of :data:`MAPPER_ATTEMPTS` (other initial
     pairs); the model with the most images wins (the first, on a tie).
@@ -211,6 +213,7 @@ def run_sfm(
     extraction.max_image_size = 3200
     extraction.num_threads = 1  # image numbers in name order (see the docstring)
     matching_options = pycolmap.FeatureMatchingOptions()
+    matching_options.num_threads = 1  # other matches now and then on several threads (see the docstring)
     verification = pycolmap.TwoViewGeometryOptions()
     verification.ransac.random_seed = SEED  # default -1: a new seed every run, other inliers every run
     pycolmap.set_random_seed(SEED)
