@@ -116,8 +116,8 @@ class SeathruModel(NerfactoModel):
         (:func:`~seathru_nerfstudio.object_field.scene_contraction_radius`), so that far surfaces seen
         through water keep their resolution; in clear air (``none``), nerfacto's, whose cells grow with
         distance, so that its hash tables hold the near surfaces that fill a clear view. Path-traced clear
-        air with ``clear_air_depth_loss_mult``: 33.64 / 33.65 dB (seeds 42 / 7) against matched nerfacto's
-        34.12, and 30.95 at the scene's extent (docs/history.md, 2026-11-28)."""
+        air with ``clear_air_depth_loss_mult`` at 3e-3: 34.06 / 34.47 dB (seeds 42 / 7) against matched
+        nerfacto's 34.12 / 34.05, and 30.95 at the scene's extent (docs/history.md, 2026-11-28)."""
         metadata = self.kwargs.get("metadata") or {}
         radius = 1.0 if self.medium_model == "none" else scene_contraction_radius(metadata)
         if radius != self.contraction_radius:

@@ -88,7 +88,7 @@ class SeathruModelConfig(NerfactoModelConfig):
     """View-dependent object colour (nerfacto); off: Lambertian, as the official code."""
     depth_loss_mult: float = 0.1
     """Weight of the DS-NeRF loss on the dataset's sparse SfM depths (0: off); through a medium the images pin the range weakly."""
-    clear_air_depth_loss_mult: float = 1e-2
+    clear_air_depth_loss_mult: float = 3e-3
     """That weight under the ``none`` model, where the images alone pin the range (0: off)."""
     diagnostics_every: int = 100
     """Print one line of decomposition diagnostics every this many steps; 0: never."""
