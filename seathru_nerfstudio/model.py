@@ -169,11 +169,6 @@ class SeathruModel(NerfactoModel):
         return self.training and self.medium_model != "none" and self.phases.first_stage
 
     @property
-    def has_sparse_depth(self) -> bool:
-        """Whether depths train the first stage's geometry (SfM depth maps, or the true depth of an oracle)."""
-        return bool((self.kwargs.get("metadata") or {}).get("depth_filenames")) or self.config.research.depth_source != "sfm"
-
-    @property
     def clear_air(self) -> bool:
         """True when the model in use is ``none`` (and any blend to it is over): no medium at all."""
         return self.medium_model == "none" and self.medium_blend >= 1.0
@@ -220,13 +215,11 @@ class SeathruModel(NerfactoModel):
             self.camera_optimizer.apply_to_raybundle(ray_bundle)
         ray_samples, weights_list, ray_samples_list = self.proposal_sampler(ray_bundle, density_fns=self.density_fns)
         field_outputs = self.field.forward(ray_samples)
-        geometry, open_share = None, None
+        geometry = None
         if self.object_frozen:
             # First stage: the object geometry alone (its weights for the depth loss and the proposal
-            # samplers, its transmittance for the prior), while every ray shows the veiling light,
-            # which learns from the rays that geometry leaves open once SfM depths train it.
-            *geometry, geometry_depth = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)
-            open_share = torch.exp(-geometry_depth[..., -1, :]) if self.has_sparse_depth else None
+            # samplers, its transmittance for the prior), while every ray shows the veiling light.
+            geometry = object_weights(field_outputs[FieldHeadNames.DENSITY], ray_samples.deltas)[:2]
             field_outputs = {name: value.detach() for name, value in field_outputs.items()}
             field_outputs[FieldHeadNames.DENSITY] = torch.zeros_like(field_outputs[FieldHeadNames.DENSITY])
         if self.training and self.medium_blend < 1.0:  # auto's blend: the geometry holds, the colour follows
@@ -247,13 +240,16 @@ class SeathruModel(NerfactoModel):
                 envelope = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
             # An empty scene shows exactly c_med whatever the densities: keep round-off gradients off them.
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())
-        elif self.training and self.phases.veil_held:  # from the object field's entry
-            medium = MediumOutputs(rgb=medium.rgb.detach(), sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs)
         render = render_seathru(
-            object_rgb=field_outputs[FieldHeadNames.RGB], object_density=field_outputs[FieldHeadNames.DENSITY],
-            starts=ray_samples.frustums.starts, deltas=ray_samples.deltas, medium_rgb=medium.rgb,
-            sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
-            veil_from_open_rays=True, open_share=open_share,
+            object_rgb=field_outputs[FieldHeadNames.RGB],
+            object_density=field_outputs[FieldHeadNames.DENSITY],
+            starts=ray_samples.frustums.starts,
+            deltas=ray_samples.deltas,
+            medium_rgb=medium.rgb,
+            sigma_attn=medium.sigma_attn,
+            sigma_bs=medium.sigma_bs,
+            quadrature=self.config.quadrature,
+            veil_from_open_rays=True,
         )
         outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, envelope)
         if self.training and self.phases.backscatter_excess_active and not self.object_frozen:

@@ -4,15 +4,15 @@ The timeline of a medium model (defaults in brackets)::
 
     0 ─ first stage ─ 200 ─ full model ─ 500 ─ blend ─ 700 ─ full model ─ end
     │   image shows an       object field   auto decides,    medium moves to auto's
-    │   empty scene: the     enters; veil   medium fitted    choice, object density
-    │   veiling light and    held; strong   to the SfM       held; (``none`` here: the
-    │   the SfM geometry     prior; excess  points, then     object field restarts
-    │   learn                loss           held             as nerfacto, no blend)
+    │   empty scene: the     enters; strong medium fitted    choice, object density
+    │   veiling light and    binary prior;  to the SfM       held; (``none`` here: the
+    │   the SfM geometry     backscatter    points, then     object field restarts
+    │   learn                excess loss    held             as nerfacto, no blend)
     └ auto: ``none`` before training if the SfM fit explains too little; the run is ``none`` throughout
 
 * ``medium_first_steps`` (200): the object colour waits; the object *density* learns from the SfM
-  depths and the empty-space prior; every ray shows the veiling light, which learns from the rays
-  that density leaves open (the open water's colour) and is held from the end of this stage on. At its end the backscatter density is capped by the darkest SfM observations and
+  depths and the empty-space prior; every ray shows the veiling light, which settles at the
+  water colour. At its end the backscatter density is capped by the darkest SfM observations and
   the attenuation by the brightest (:mod:`seathru_nerfstudio.medium_start`).
 * ``research.auto_decision_step`` (500, ``auto`` only): the simplest medium model the evidence of
   the last ``research.auto_evidence_steps`` allows (:mod:`seathru_nerfstudio.medium_choice`).
@@ -48,12 +48,6 @@ class TrainingPhases:
     def first_stage(self) -> bool:
         """In the first ``medium_first_steps`` steps, where the image shows an empty scene."""
         return self.step is not None and self.step < self.config.medium_first_steps
-
-    @property
-    def veil_held(self) -> bool:
-        """From the end of a first stage on, in training: the veiling light learned there is held."""
-        first = self.config.medium_first_steps
-        return self.step is not None and first > 0 and self.step >= first
 
     @property
     def medium_blend(self) -> float:

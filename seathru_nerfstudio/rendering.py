@@ -141,7 +141,6 @@ def render_seathru(
     sigma_bs: Float[Tensor, "*batch 3"],
     quadrature: Quadrature = "analytic",
     veil_from_open_rays: bool = False,
-    open_share: Optional[Float[Tensor, "*batch 1"]] = None,
 ) -> SeathruRender:
     """Render rays through an object field in a per-ray homogeneous medium (sec. 4.3).
 
@@ -152,8 +151,7 @@ def render_seathru(
     ray by ray, by the share of the ray that passes all matter, ``T_obj,N = e^{-tau_N}``. The
     veiling light is the colour at infinity, seen directly only where the view is open; on a ray
     that ends on a surface, ``B_inf`` and ``sigma_bs`` trade off along ``B_inf (1 - e^{-sigma_bs z})``,
-    and this leaves that trade to the densities. ``open_share``: that share given, in ``[0, 1]``
-    (e.g. from a geometry that is trained but not rendered); by default ``e^{-tau_N}`` of ``object_density``.
+    and this leaves that trade to the densities.
     """
     if quadrature not in ("analytic", "paper"):
         raise ValueError(f"unknown quadrature {quadrature!r}; expected 'analytic' or 'paper'")
@@ -194,9 +192,7 @@ def render_seathru(
         )
         veil = c_med[..., 0, :]
         if veil_from_open_rays:
-            if open_share is None:
-                open_share = torch.exp(-tau_end[..., 0, :])  # [..., 1]
-            open_share = open_share.to(dtype).detach().clamp(0.0, 1.0)
+            open_share = torch.exp(-tau_end[..., 0, :]).detach()  # [..., 1]
             veil = veil * open_share + veil.detach() * (1.0 - open_share)
         backscatter = (head + inside + tail) * veil
 

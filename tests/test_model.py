@@ -545,33 +545,6 @@ def test_a_learning_oracle_starts_at_the_truth_and_its_medium_learns(tmp_path):
     assert groups["medium_density"] and groups["medium"]  # it learns, in the groups of a learned medium
 
 
-def test_the_veil_learns_in_the_first_stage_only_from_the_rays_its_geometry_leaves_open():
-    """First stage with SfM depths: d rgb / d veil is the empty render's (1 per ray) times the open share
-    of the geometry it trains; without depths, 1 on every ray. From the object field's entry the veil
-    is held (no gradient) while the densities learn; with no first stage it learns from open rays."""
-    torch.manual_seed(0)
-    with_depths = tiny_model(metadata={"depth_filenames": ["d.png"]}, medium_scope="scene", medium_first_steps=5,
-                             average_init_density=3.0)
-    without = tiny_model(medium_scope="scene", medium_first_steps=5, average_init_density=3.0)
-    without.load_state_dict(with_depths.state_dict())
-    shares = []
-    for model in (with_depths, without):
-        model.train()
-        model.train_step = 0
-        out = model(rays(32, seed=5))
-        (grad,) = torch.autograd.grad(out["rgb"].sum(), out["medium_rgb"])
-        transmittance, weights = out["transmittance"].detach(), out["weights_list"][-1].detach()
-        shares.append(transmittance[..., -1, :] - weights[..., -1, :])  # T after the last sample
-        torch.testing.assert_close(grad, torch.ones_like(grad) * (shares[-1] if model is with_depths else 1.0))
-    assert ((shares[0] > 0.05) & (shares[0] < 0.95)).any()  # partly open rays: the weighting shows
-    with_depths.train_step = 5  # the object field enters
-    out = with_depths(rays(32, seed=5))
-    out["rgb"].sum().backward()
-    groups = with_depths.get_param_groups()
-    assert all(p.grad is None or p.grad.abs().sum() == 0 for p in groups["medium"])  # the veil is held
-    assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in groups["medium_density"])
-
-
 def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an_empty_scene(tmp_path):
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))

@@ -346,26 +346,3 @@ def test_veil_from_open_rays_keeps_values_and_scales_the_veil_gradient_by_the_op
     torch.testing.assert_close(veil_open[1][1], torch.ones(3), rtol=1e-12, atol=1e-15)  # empty: sees B_inf
     torch.testing.assert_close(veil_open[1][2], torch.zeros(3), rtol=0, atol=1e-12)  # behind the wall
     assert (veil_open[1][0] > 0).all() and (veil_open[1][0] < plain[1][0]).all()
-
-
-def test_a_given_open_share_scales_the_veil_gradient_and_changes_no_value():
-    """The first stage renders an empty scene but knows its geometry's open share: with ``open_share``
-    given, d rgb / d c_med is the empty ray's own factor times that share (0, 0.25, 1), the values and
-    the densities' gradients are those of the empty render, and a share outside [0, 1] is clamped."""
-    starts, deltas = uneven_bins(32, 0.1, 12.0, seed=3)
-    empty = torch.zeros(4, 32, 1)
-    rgb = torch.rand(4, 32, 3, generator=torch.Generator().manual_seed(5), dtype=torch.float64)
-    share = torch.tensor([[0.0], [0.25], [1.0], [7.0]])
-    grads = {}
-    for given in (None, share):
-        c_med = B_INF.expand(4, 3).clone().requires_grad_(True)
-        bs = BETA_B.expand(4, 3).clone().requires_grad_(True)
-        out = render_seathru(rgb, empty, starts.expand(4, 32, 1), deltas.expand(4, 32, 1), c_med, BETA_D.expand(4, 3), bs,
-                             veil_from_open_rays=True, open_share=given)
-        out.rgb.sum().backward()
-        grads[given is None] = (out.rgb, c_med.grad, bs.grad)
-    (rgb_given, veil_given, bs_given), (rgb_own, veil_own, bs_own) = grads[False], grads[True]
-    torch.testing.assert_close(rgb_given, rgb_own, rtol=0, atol=0)
-    torch.testing.assert_close(bs_given, bs_own, rtol=0, atol=0)
-    torch.testing.assert_close(veil_own, torch.ones(4, 3), rtol=1e-12, atol=1e-15)  # an empty ray sees B_inf alone
-    torch.testing.assert_close(veil_given, share.clamp(0.0, 1.0).expand(4, 3), rtol=1e-12, atol=1e-15)
