@@ -1,4 +1,16 @@
-"""The medium where the object field enters: its densities bounded by the SfM observations.
+"""The medium where the object field enters: the veiling light read from the open water, and the
+densities bounded by the SfM observations.
+
+**The veiling light.** ``B∞`` is the colour of a ray that meets nothing. The first stage renders an
+empty scene, so gradient descent there teaches ``B∞`` the mean image, the objects included (the
+formula-drawn water demo: 0.093, 0.184, 0.328 at step 199 against 0.07, 0.2, 0.39). But the first
+stage also trains the object *geometry* from the SfM depths and the empty-space prior. Over its second
+half, :class:`OpenWaterColour` averages the colour of the training rays that geometry leaves open
+(transmittance above :data:`OPEN_SHARE`), and at its end that mean becomes ``B∞``, held from then
+on (``SeathruModel.veil_held``). Learned on after entry instead, from the rays the object field leaves
+open, the veil climbs as that field fills the darker open water (path-traced coastal: blue 0.41 at
+entry, 0.61 at step 1500, best fit 0.44), and the densities fitted under it at step 500 follow it
+(docs/history.md, 2026-11-28).
 
 A surface at range ``z`` (world units) shows, per channel,
 
@@ -42,7 +54,7 @@ Units: ranges in world units, densities per world unit, colours linear.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Optional
 
 import torch
 from jaxtyping import Float
@@ -55,6 +67,37 @@ from seathru_nerfstudio.phases import TrainingPhases
 
 DENSITY_FLOOR = 1e-6
 """The cap never goes below this (per world unit): a softplus parameter cannot hold 0 exactly."""
+
+OPEN_SHARE = 0.95
+"""A ray counts as open water when the first stage's geometry lets this share of it through: a hard
+threshold, since a silhouette ray that is partly open carries the object's colour (weighted by its
+open share instead, the 48×36 water demo's veil ended 8% off; docs/history.md, 2026-11-28)."""
+
+MIN_OPEN_FRACTION = 0.01
+"""Fewer open rays than this share of those seen, and the veil learned in the first stage stays."""
+
+
+class OpenWaterColour:
+    """The mean linear colour of the training rays the first stage's geometry leaves open."""
+
+    def __init__(self) -> None:
+        self.total = torch.zeros(3, dtype=torch.float64)
+        self.open_rays = 0
+        self.rays = 0
+
+    def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"]) -> None:
+        """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past the last sample."""
+        is_open = open_share.detach()[..., 0] > OPEN_SHARE
+        self.total += colours.detach()[is_open].double().sum(dim=0).cpu()
+        self.open_rays += int(is_open.sum())
+        self.rays += int(is_open.numel())
+
+    def mean(self) -> Optional[Float[Tensor, "3"]]:
+        """The open rays' mean colour, or ``None`` where under :data:`MIN_OPEN_FRACTION` of the rays were open."""
+        if self.open_rays == 0 or self.open_rays < MIN_OPEN_FRACTION * self.rays:
+            return None
+        return self.total / self.open_rays
+
 
 DARK_QUANTILE = 0.01
 """Sea-thru's share of darkest pixels: each bound is this quantile of the per-observation bounds."""
@@ -123,7 +166,8 @@ def attenuation_cap(
 
 
 def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
-    """Callback at the end of the first stage: lower the scene medium's backscatter densities to
+    """Callback at the end of the first stage: set the veiling light to the open water's colour
+    (:class:`OpenWaterColour`, where it saw enough open rays), then lower the scene medium's backscatter densities to
     :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
     learned so far, then its attenuations to :func:`attenuation_cap` under that backscatter; a
     density already below its cap stays. ``optimizers``: the trainer's, whose
@@ -133,6 +177,16 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
         return
     if config.research.medium_oracle is not None or model.medium_model == "none":
         return  # an oracle is the medium; clear air renders none
+    open_water = model.open_water_colour.mean()
+    if open_water is not None:
+        with torch.no_grad():
+            learned = torch.sigmoid(model.medium_field.rgb_logit.double())
+            model.medium_field.rgb_logit.copy_(torch.logit(open_water.clamp(1e-4, 1 - 1e-4)).to(model.medium_field.rgb_logit))
+        show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+        CONSOLE.print(
+            f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "
+            f"{model.open_water_colour.open_rays} open rays, held from here"
+        )
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:
         return

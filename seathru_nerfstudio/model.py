@@ -46,7 +46,7 @@ from seathru_nerfstudio.medium_field import (
     clear_medium,
     tie,
 )
-from seathru_nerfstudio.medium_start import apply_density_caps
+from seathru_nerfstudio.medium_start import OpenWaterColour, apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
@@ -82,6 +82,7 @@ class SeathruModel(NerfactoModel):
             )
         self.fit_oracle = read_true_medium(research.medium_fit_oracle) if research.medium_fit_oracle else None
         self.medium_field = self._build_medium(metadata)
+        self.open_water_colour = OpenWaterColour()  # the first stage's open rays: the veil from its end on
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
         self.register_buffer("medium_model_code", torch.tensor(code, dtype=torch.long))
         """Index in ``MEDIUM_MODELS`` of the model in use (``UNDECIDED``: ``auto`` before its decision)."""
@@ -111,13 +112,11 @@ class SeathruModel(NerfactoModel):
         """Renders outside training take the viewer's water controls; SeathruPipeline turns this off to evaluate."""
 
     def contract_for_medium_model(self) -> None:
-        """The object field's contraction for the medium model in use (called again whenever it changes,
-        and after a checkpoint loads): with a medium, from the scene's extent
-        (:func:`~seathru_nerfstudio.object_field.scene_contraction_radius`), so that far surfaces seen
-        through water keep their resolution; in clear air (``none``), nerfacto's, whose cells grow with
-        distance, so that its hash tables hold the near surfaces that fill a clear view. Path-traced clear
-        air with ``clear_air_depth_loss_mult`` at 3e-3: 34.06 / 34.47 dB (seeds 42 / 7) against matched
-        nerfacto's 34.12 / 34.05, and 30.95 at the scene's extent (docs/history.md, 2026-11-28)."""
+        """The object field's contraction for the medium model in use (again whenever it changes, and after a
+        checkpoint loads): with a medium, from the scene's extent (:func:`~seathru_nerfstudio.object_field.
+        scene_contraction_radius`), so that far surfaces seen through water keep their resolution; in clear air
+        (``none``), nerfacto's, so that its hash tables hold the near surfaces that fill a clear view (path-traced
+        clear air: 34.06 / 34.47 dB against nerfacto's 34.12 / 34.05, 30.95 at the scene's extent; docs/history.md)."""
         metadata = self.kwargs.get("metadata") or {}
         radius = 1.0 if self.medium_model == "none" else scene_contraction_radius(metadata)
         if radius != self.contraction_radius:
@@ -167,6 +166,12 @@ class SeathruModel(NerfactoModel):
     def object_frozen(self) -> bool:
         """In the first stage of a medium model's training: the image shows an empty scene."""
         return self.training and self.medium_model != "none" and self.phases.first_stage
+
+    @property
+    def veil_held(self) -> bool:
+        """In training after a first stage whose SfM-trained geometry read the open water's colour into the scene medium's veil."""
+        depths = (self.kwargs.get("metadata") or {}).get("depth_filenames")
+        return bool(self.training and self.phases.after_first_stage and self.config.medium_scope == "scene" and depths)
 
     @property
     def clear_air(self) -> bool:
@@ -240,15 +245,12 @@ class SeathruModel(NerfactoModel):
                 envelope = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
             # An empty scene shows exactly c_med whatever the densities: keep round-off gradients off them.
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())
+        elif self.veil_held:
+            medium = MediumOutputs(rgb=medium.rgb.detach(), sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs)
         render = render_seathru(
-            object_rgb=field_outputs[FieldHeadNames.RGB],
-            object_density=field_outputs[FieldHeadNames.DENSITY],
-            starts=ray_samples.frustums.starts,
-            deltas=ray_samples.deltas,
-            medium_rgb=medium.rgb,
-            sigma_attn=medium.sigma_attn,
-            sigma_bs=medium.sigma_bs,
-            quadrature=self.config.quadrature,
+            object_rgb=field_outputs[FieldHeadNames.RGB], object_density=field_outputs[FieldHeadNames.DENSITY],
+            starts=ray_samples.frustums.starts, deltas=ray_samples.deltas, medium_rgb=medium.rgb,
+            sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
             veil_from_open_rays=True,
         )
         outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, envelope)
@@ -363,6 +365,9 @@ class SeathruModel(NerfactoModel):
         if self.config.color_space == "linear" and not self.clear_air:  # clear air: nerfacto's L2
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=research.rawnerf_eps)
         no_geometry_yet = self.object_frozen and "depth_image" not in batch and research.depth_source == "sfm"
+        if self.training and self.object_frozen and not no_geometry_yet and self.phases.reads_open_water:
+            weights, transmittance = outputs["weights_list"][-1], outputs["transmittance"]
+            self.open_water_colour.add(image, transmittance[..., -1, :] - weights[..., -1, :])  # T past the last sample
         prior_weight = self.phases.binary_prior_weight
         if self.training and prior_weight > 0 and not self.clear_air and not no_geometry_yet:
             loss_dict["binary_prior_loss"] = prior_weight * binary_transmittance_loss(

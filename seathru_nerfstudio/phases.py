@@ -11,8 +11,9 @@ The timeline of a medium model (defaults in brackets)::
     └ auto: ``none`` before training if the SfM fit explains too little; the run is ``none`` throughout
 
 * ``medium_first_steps`` (200): the object colour waits; the object *density* learns from the SfM
-  depths and the empty-space prior; every ray shows the veiling light, which settles at the
-  water colour. At its end the backscatter density is capped by the darkest SfM observations and
+  depths and the empty-space prior; every ray shows the veiling light. Over its second half the
+  colour of the rays that geometry leaves open is averaged; at its end it becomes the veiling
+  light, held from then on. At its end the backscatter density is capped by the darkest SfM observations and
   the attenuation by the brightest (:mod:`seathru_nerfstudio.medium_start`).
 * ``research.auto_decision_step`` (500, ``auto`` only): the simplest medium model the evidence of
   the last ``research.auto_evidence_steps`` allows (:mod:`seathru_nerfstudio.medium_choice`).
@@ -48,6 +49,17 @@ class TrainingPhases:
     def first_stage(self) -> bool:
         """In the first ``medium_first_steps`` steps, where the image shows an empty scene."""
         return self.step is not None and self.step < self.config.medium_first_steps
+
+    @property
+    def reads_open_water(self) -> bool:
+        """In the second half of the first stage, where its geometry has formed: the open rays' colour is averaged."""
+        return self.first_stage and self.step >= self.config.medium_first_steps // 2
+
+    @property
+    def after_first_stage(self) -> bool:
+        """In training, once a first stage is over (the veiling light read there is held)."""
+        first = self.config.medium_first_steps
+        return self.step is not None and first > 0 and self.step >= first
 
     @property
     def medium_blend(self) -> float:

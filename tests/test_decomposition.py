@@ -45,10 +45,14 @@ def test_clean_error_falls_and_the_surfaces_are_at_their_depth(run):
 
 
 @pytest.mark.slow
-def test_veiling_light_moves_toward_the_truth(run):
+def test_the_veiling_light_is_the_open_waters_from_entry_and_stays(run):
+    """At the end of the first stage the veiling light becomes the colour of the rays the SfM geometry
+    leaves open, and is held: within 10% of the truth just after entry and unchanged at the end.
+    Learned on instead, it reached the truth only after the fit, with the open water filled up to then
+    (2026-11-28; docs/history.md)."""
     early, late = run
-    assert late["medium_error"]["B_inf"]["rel_mean"] < 0.5 * early["medium_error"]["B_inf"]["rel_mean"]
-    assert late["medium_error"]["B_inf"]["rel_mean"] < 0.5
+    assert early["medium_error"]["B_inf"]["rel_mean"] < 0.1, early["medium_error"]["B_inf"]
+    assert late["medium_error"]["B_inf"]["pred"] == pytest.approx(early["medium_error"]["B_inf"]["pred"], rel=1e-6)
 
 
 @pytest.mark.slow

@@ -6,6 +6,8 @@ import numpy as np
 import torch
 
 from seathru_nerfstudio.medium_start import (
+    OPEN_SHARE,
+    OpenWaterColour,
     apply_density_caps,
     attenuation_bounds,
     attenuation_cap,
@@ -139,3 +141,40 @@ def test_the_caps_lower_the_densities_at_the_end_of_the_first_stage_only(capsys)
     bare_before = bare.medium_field.density_raw.detach().clone()
     apply_density_caps(bare, 4)
     assert torch.equal(bare.medium_field.density_raw.detach(), bare_before)
+
+
+def test_the_open_water_colour_is_the_mean_of_the_rays_the_geometry_leaves_open():
+    """Only rays open past :data:`OPEN_SHARE` count (a half-open silhouette ray does not), over every
+    batch added; under 1% of the rays open, or none, there is no estimate."""
+    water = torch.tensor([0.07, 0.2, 0.39])
+    estimate = OpenWaterColour()
+    assert estimate.mean() is None
+    colours = torch.stack([water, water + 0.02, torch.tensor([0.9, 0.1, 0.1]), torch.tensor([0.3, 0.3, 0.3])])
+    shares = torch.tensor([[1.0], [OPEN_SHARE + 1e-3], [OPEN_SHARE - 1e-3], [0.5]])
+    estimate.add(colours, shares)
+    estimate.add(colours[:1], shares[:1])
+    torch.testing.assert_close(estimate.mean(), ((2 * water + water + 0.02) / 3).double(), rtol=1e-6, atol=1e-7)
+    assert (estimate.open_rays, estimate.rays) == (3, 5)
+    sparse = OpenWaterColour()
+    sparse.add(water.expand(1000, 3), torch.cat([torch.ones(9, 1), torch.zeros(991, 1)]))
+    assert sparse.mean() is None  # 0.9% open
+    sparse.add(water.expand(2, 3), torch.ones(2, 1))
+    torch.testing.assert_close(sparse.mean(), water.double())
+
+
+def test_the_veil_becomes_the_open_water_colour_at_the_end_of_the_first_stage(capsys):
+    """The callback at the first stage's last step sets the scene medium's veil to the estimate and
+    says so; before that step, or with no estimate, the veil is unchanged."""
+    model = tiny_model(medium_first_steps=5, medium_fit_step=10)
+    water = torch.tensor([0.07, 0.2, 0.39])
+    model.open_water_colour.add(water.expand(10, 3), torch.ones(10, 1))
+    before = torch.sigmoid(model.medium_field.rgb_logit).detach().clone()
+    apply_density_caps(model, 3)
+    torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach(), before)
+    apply_density_caps(model, 4)
+    torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach(), water, rtol=1e-5, atol=1e-6)
+    assert "10 open rays, held from here" in capsys.readouterr().out
+    none_open = tiny_model(medium_first_steps=5, medium_fit_step=10)
+    before = torch.sigmoid(none_open.medium_field.rgb_logit).detach().clone()
+    apply_density_caps(none_open, 4)
+    torch.testing.assert_close(torch.sigmoid(none_open.medium_field.rgb_logit).detach(), before)

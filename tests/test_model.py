@@ -545,6 +545,42 @@ def test_a_learning_oracle_starts_at_the_truth_and_its_medium_learns(tmp_path):
     assert groups["medium_density"] and groups["medium"]  # it learns, in the groups of a learned medium
 
 
+def test_the_first_stage_reads_the_open_water_in_its_second_half_and_the_veil_is_held_after_it():
+    """With SfM depths: the first stage's second half averages the colour of the rays its geometry leaves
+    open (not the first half); after the stage the veil gets no gradient while the densities learn.
+    Without depths (an untrained geometry) nothing is read and the veil learns on."""
+    torch.manual_seed(0)
+    depths = {"depth_filenames": ["frame_00000.png"]}
+    model = tiny_model(metadata=depths, medium_scope="scene", medium_first_steps=6, average_init_density=0.01)
+    bare = tiny_model(medium_scope="scene", medium_first_steps=6)
+    model.train(), bare.train()
+    from seathru_nerfstudio.medium_start import OPEN_SHARE
+
+    image = torch.rand(16, 3)
+    expected_open, expected_total = 0, torch.zeros(3, dtype=torch.float64)
+    for step in (0, 2, 3, 5):
+        model.train_step = step
+        out = model(rays(16, seed=step))
+        batch = {"image": image, "depth_image": torch.zeros(16, 1)}
+        model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))
+        assert (model.open_water_colour.rays > 0) == (step >= 3), step
+        if step >= 3:  # T past the last sample, from the geometry's own outputs
+            past = out["transmittance"][..., -1, 0] - out["weights_list"][-1][..., -1, 0]
+            expected_open += int((past > OPEN_SHARE).sum())
+            expected_total += image[past > OPEN_SHARE].double().sum(dim=0)
+    assert (model.open_water_colour.rays, model.open_water_colour.open_rays) == (32, expected_open)
+    torch.testing.assert_close(model.open_water_colour.total, expected_total)
+    for m, held in ((model, True), (bare, False)):
+        m.train_step = 6
+        m.zero_grad()
+        m(rays(16, seed=7))["rgb"].sum().backward()
+        veil = m.medium_field.rgb_logit.grad
+        assert (veil is None or veil.abs().sum() == 0) == held
+        assert m.medium_field.density_raw.grad is not None and m.medium_field.density_raw.grad.abs().sum() > 0
+    model.eval()
+    assert not model.veil_held  # renders outside training take the viewer's controls
+
+
 def test_first_stage_geometry_learns_the_density_from_depths_only_and_renders_an_empty_scene(tmp_path):
     truth = {"beta_D": [1.3, 1.2, 0.9], "beta_B": [0.95, 0.85, 0.7], "B_inf": [0.07, 0.2, 0.39]}
     (tmp_path / "medium.json").write_text(__import__("json").dumps(truth))
