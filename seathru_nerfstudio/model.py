@@ -169,8 +169,8 @@ class SeathruModel(NerfactoModel):
 
     @property
     def veil_held(self) -> bool:
-        """In training after a first stage whose SfM-trained geometry read the open water's colour into the scene medium's veil."""
-        depths = (self.kwargs.get("metadata") or {}).get("depth_filenames")
+        """In training after a first stage whose SfM-trained geometry read the open water's colour into the scene medium's veil (never an oracle's)."""
+        depths = (self.kwargs.get("metadata") or {}).get("depth_filenames") and self.config.research.medium_oracle is None
         return bool(self.training and self.phases.after_first_stage and self.config.medium_scope == "scene" and depths)
 
     @property
