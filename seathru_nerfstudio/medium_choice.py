@@ -227,8 +227,7 @@ class AutoMediumChoice:
             return evidence, "from the warm-up (no SfM fit)"
         fit, explained = _fit_and_explained_share(model, table)
         evidence = dataclasses.replace(evidence, explained=explained)
-        warm_up_attenuation = torch.tensor(evidence.beta_D, dtype=torch.float64)
-        certain = fit_replaces(fit, warm_up_attenuation, model.config.research.medium_fit_max_log_error)
+        certain = fit_replaces(fit, model.config.research.medium_fit_max_log_error)
         if not bool(certain.any()):
             return evidence, "from the warm-up (the SfM fit is uncertain)"
 

@@ -49,8 +49,8 @@ class ResearchConfig(PrintableConfig):
     """``auto``: steps over which the medium moves to the chosen model, the object density held."""
     auto_rule: ChoiceRule = field(default_factory=ChoiceRule)
     """``auto``: thresholds of the decision (:mod:`seathru_nerfstudio.medium_choice`)."""
-    medium_fit_max_log_error: float = 0.1
-    """A channel keeps its trained densities where the fit's standard error of ``ln β_D`` is above this and the fit does not reject them."""
+    medium_fit_max_log_error: float = 0.35
+    """A channel keeps its trained densities where the fit's standard error of ``ln β_D`` is above this."""
     medium_init_density: float = 0.5
     """Starting densities per scene unit where ``medium_init_optical_depth`` cannot apply (no SfM depths)."""
     backscatter_excess_mult: float = 10.0
