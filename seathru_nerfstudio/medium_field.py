@@ -28,7 +28,6 @@ from torch import Tensor, nn
 from nerfstudio.field_components.encodings import SHEncoding
 from nerfstudio.field_components.mlp import MLP
 from nerfstudio.fields.base_field import get_normalized_directions
-from nerfstudio.utils.math import components_from_spherical_harmonics
 
 
 @dataclass
@@ -171,10 +170,6 @@ def _expand(values: Tensor, directions: Tensor) -> Tensor:
     return values.to(directions.device).expand(*directions.shape[:-1], 3)
 
 
-OPEN_WATER_SH_LEVELS = 3
-"""Spherical-harmonic levels of :meth:`SceneMedium.open_water_gain` (degrees 0-2; the constant is left out)."""
-
-
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
     learned constants, the same for every ray (sigmoid and softplus, as the MLP's heads).
@@ -194,11 +189,6 @@ class SceneMedium(nn.Module):
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
         self.density_raw = nn.Parameter(torch.zeros(6))
         self.set_densities(densities)
-        self.open_water_gain_sh = nn.Parameter(torch.zeros(OPEN_WATER_SH_LEVELS**2 - 1, 3))
-        """Coefficients of :meth:`open_water_gain` (per channel, SH of degree 1 and 2): zero, a uniform open water."""
-        self.register_buffer("open_water_directional", torch.tensor(False))
-        """Set where the veil was read from the open water (``medium_start.apply_density_caps``): from then on the
-        open water is rendered with :meth:`open_water_gain`."""
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene
@@ -211,15 +201,6 @@ class SceneMedium(nn.Module):
         """The attenuation and backscatter densities: weakly determined by the images, so they
         learn in their own, slower optimiser group; the veiling light is seen directly in open water."""
         return [self.density_raw]
-
-    def open_water_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-        """``g(d)``, the log of the open water's brightness relative to ``c_med`` along unit direction ``d``:
-        a real spherical-harmonic expansion of degrees 1 and 2 (no constant term: the mean level is ``c_med``,
-        read from the open water and held), clamped to ``[-3, 3]``. Path-traced open water brightens by
-        25-60% from the horizon to 25° up (docs/history.md, 2026-11-28 (after df75ee3)); one constant cannot
-        render that, and the object field filled the open water to paint it."""
-        basis = components_from_spherical_harmonics(OPEN_WATER_SH_LEVELS, directions.float())[..., 1:]
-        return (basis @ self.open_water_gain_sh.float()).clamp(-3.0, 3.0)
 
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())

@@ -182,7 +182,6 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
         with torch.no_grad():
             learned = torch.sigmoid(model.medium_field.rgb_logit.double())
             model.medium_field.rgb_logit.copy_(torch.logit(open_water.clamp(1e-4, 1 - 1e-4)).to(model.medium_field.rgb_logit))
-            model.medium_field.open_water_directional.fill_(True)  # its brightness by direction learns from here
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "

@@ -53,7 +53,7 @@ from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
 from seathru_nerfstudio.object_field import FixedDirectionEncoding, scene_collider, scene_contraction_radius, set_contraction
 from seathru_nerfstudio.oracles import oracle_medium, read_true_medium
 from seathru_nerfstudio.phases import TrainingPhases
-from seathru_nerfstudio.rendering import SeathruRender, object_weights, render_seathru, with_open_water_light
+from seathru_nerfstudio.rendering import SeathruRender, object_weights, render_seathru
 
 __all__ = ["ResearchConfig", "SeathruModel", "SeathruModelConfig", "UNDECIDED"]
 
@@ -253,16 +253,18 @@ class SeathruModel(NerfactoModel):
             sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
             veil_from_open_rays=True,
         )
-        if isinstance(self.medium_field, SceneMedium) and not self.object_frozen:  # the open water's light by direction
-            gain = self.medium_field.open_water_gain(ray_bundle.directions) * self.medium_field.open_water_directional
-            render = with_open_water_light(render, medium.rgb.detach(), gain)
         outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, envelope)
         if self.training and self.phases.backscatter_excess_active and not self.object_frozen:
             # The backscatter alone, the geometry and the veil held: the excess loss moves sigma_bs only.
             held = render_seathru(
-                object_rgb=torch.zeros_like(field_outputs[FieldHeadNames.RGB]), object_density=field_outputs[FieldHeadNames.DENSITY].detach(),
-                starts=ray_samples.frustums.starts, deltas=ray_samples.deltas, medium_rgb=medium.rgb.detach(),
-                sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
+                object_rgb=torch.zeros_like(field_outputs[FieldHeadNames.RGB]),
+                object_density=field_outputs[FieldHeadNames.DENSITY].detach(),
+                starts=ray_samples.frustums.starts,
+                deltas=ray_samples.deltas,
+                medium_rgb=medium.rgb.detach(),
+                sigma_attn=medium.sigma_attn,
+                sigma_bs=medium.sigma_bs,
+                quadrature=self.config.quadrature,
             )
             outputs["backscatter_geometry_held"] = held.backscatter
         return outputs

@@ -41,7 +41,6 @@ All maths runs in float32 with autocast disabled, so fp16/bf16 inputs give finit
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Literal
 
@@ -228,24 +227,3 @@ def formation_model(
     direct = torch.where(finite, clean * torch.exp(-beta_d * z), torch.zeros_like(clean))
     veil = torch.where(finite, one_minus_exp(beta_b * z), torch.ones_like(clean))
     return direct + veiling_light * veil
-
-
-def with_open_water_light(
-    render: SeathruRender, veiling_light: Float[Tensor, "*batch 3"], gain_log: Float[Tensor, "*batch 3"], open_above: float = 0.95
-) -> SeathruRender:
-    """``render`` with open water whose brightness depends on the direction: ``T_N c_med (e^{g} - 1)``
-    added to ``rgb`` and ``backscatter``, where ``T_N = 1 - accumulation`` is the share of the ray
-    that passes all matter and ``g = gain_log`` the log of the light at infinity relative to
-    ``c_med`` along this ray. A ray that hits nothing then shows ``c_med e^{g}``; a ray that ends on
-    a surface (``T_N = 0``) is unchanged, so the direct light, the backscatter in front of surfaces
-    and ``clean`` keep the SeaThru formation model with one ``c_med``. ``g = 0`` changes nothing.
-    Gradients: none reach the object density through ``T_N``, and ``g`` learns only from rays with
-    ``T_N > open_above`` (a gain fitted to half-open silhouette rays paints the objects' colour
-    into the open water next to them, and the object field fills it to undo that).
-    """
-    dtype = torch.promote_types(render.rgb.dtype, torch.float32)
-    with torch.autocast(device_type=render.rgb.device.type, enabled=False):
-        open_share = (1.0 - render.accumulation.to(dtype)).detach()  # the gain moves no matter
-        gain = torch.where(open_share > open_above, gain_log.to(dtype), gain_log.to(dtype).detach())
-        extra = open_share * veiling_light.to(dtype) * torch.expm1(gain.clamp(-3.0, 3.0))
-    return dataclasses.replace(render, rgb=render.rgb + extra, backscatter=render.backscatter + extra)

@@ -479,25 +479,3 @@ def test_auto_decides_none_before_training_from_the_sfm_points(medium_density, c
     assert int(model.medium_model_step) == -1
     assert (model.auto_choice.initial_object is None) == decided
     assert model.contraction_radius == (1.0 if decided else 12.0)  # clear air: nerfacto's contraction
-
-
-def test_the_open_water_gain_starts_flat_has_no_constant_term_and_is_bounded():
-    """``SceneMedium.open_water_gain``: zero for every direction at the start; for any coefficients
-    its mean over the sphere is zero (degrees 1 and 2 only: the level stays the held ``c_med``); it
-    follows a coefficient of degree 1 (``g = k · 0.4886 d_z`` for the ``z`` component); clamped to ±3."""
-    from seathru_nerfstudio.medium_field import SceneMedium
-
-    medium = SceneMedium()
-    directions = torch.nn.functional.normalize(torch.randn(200_000, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
-    assert not medium.open_water_gain(directions).any()
-    with torch.no_grad():
-        medium.open_water_gain_sh.copy_(torch.randn(medium.open_water_gain_sh.shape, generator=torch.Generator().manual_seed(1)) * 0.3)
-    assert medium.open_water_gain(directions).mean(0).abs().max() < 0.01
-    with torch.no_grad():
-        medium.open_water_gain_sh.zero_()
-        medium.open_water_gain_sh[1] = torch.tensor([1.0, 2.0, -1.0])  # nerfstudio's second component: 0.4886 z
-    up = torch.tensor([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]])
-    torch.testing.assert_close(medium.open_water_gain(up), 0.4886025 * up[:, 2:] * torch.tensor([1.0, 2.0, -1.0]), rtol=1e-5, atol=1e-6)
-    with torch.no_grad():
-        medium.open_water_gain_sh.fill_(1e6)
-    assert medium.open_water_gain(directions).abs().max() <= 3.0

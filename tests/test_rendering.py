@@ -2,13 +2,12 @@
 
 from __future__ import annotations
 
-import dataclasses
 import itertools
 
 import pytest
 import torch
 
-from seathru_nerfstudio.rendering import absorbed_fraction, formation_model, object_weights, render_seathru, with_open_water_light
+from seathru_nerfstudio.rendering import absorbed_fraction, formation_model, object_weights, render_seathru
 
 
 
@@ -347,53 +346,3 @@ def test_veil_from_open_rays_keeps_values_and_scales_the_veil_gradient_by_the_op
     torch.testing.assert_close(veil_open[1][1], torch.ones(3), rtol=1e-12, atol=1e-15)  # empty: sees B_inf
     torch.testing.assert_close(veil_open[1][2], torch.zeros(3), rtol=0, atol=1e-12)  # behind the wall
     assert (veil_open[1][0] > 0).all() and (veil_open[1][0] < plain[1][0]).all()
-
-
-def test_open_water_light_shows_the_gain_where_rays_are_open_and_nothing_on_surfaces():
-    """``with_open_water_light``: an empty ray shows ``c_med e^g``; a ray ending on an opaque wall
-    is unchanged (its direct light, backscatter and ``clean`` keep the formation model); a
-    half-open ray gets half the extra light; ``g = 0`` changes nothing; ``rgb = direct + backscatter``."""
-    starts, deltas = uneven_bins(32, 0.1, 50.0, seed=4)
-    gain = torch.tensor([0.3, -0.2, 0.5])
-    empty = render(torch.rand(32, 3), torch.zeros(32, 1), starts, deltas)
-    lit = with_open_water_light(empty, B_INF, gain)
-    torch.testing.assert_close(lit.rgb, B_INF * torch.exp(gain), rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(lit.rgb, lit.direct + lit.backscatter)
-    rgb, density = wall_ray(starts, deltas, k=20)
-    wall = render(rgb, density, starts, deltas)
-    torch.testing.assert_close(with_open_water_light(wall, B_INF, gain).rgb, wall.rgb, rtol=0, atol=1e-12)
-    half = render(torch.rand(32, 3), torch.zeros(32, 1), starts, deltas)
-    half = dataclasses.replace(half, accumulation=torch.full((1,), 0.5))
-    torch.testing.assert_close(with_open_water_light(half, B_INF, gain).rgb - half.rgb, 0.5 * B_INF * torch.expm1(gain))
-    torch.testing.assert_close(with_open_water_light(wall, B_INF, torch.zeros(3)).clean, wall.clean)
-    torch.testing.assert_close(with_open_water_light(empty, B_INF, torch.zeros(3)).rgb, empty.rgb)
-
-
-def test_open_water_gain_learns_only_from_open_rays_and_moves_no_matter():
-    """Gradients of ``with_open_water_light``: the gain gets one where the ray is open beyond
-    ``open_above``, matching a finite difference of ``T_N c_med e^g``; none on a half-open ray; none ever
-    reaches the object density through ``T_N``."""
-    starts, deltas = uneven_bins(16, 0.1, 20.0, seed=2)
-    for density_value, learns in ((0.0, True), (0.02, False)):  # open (T_N = 1) and about half open
-        density = torch.full((16, 1), density_value, requires_grad=True)
-        gain = torch.tensor([0.3, -0.2, 0.5], requires_grad=True)
-        base = render(torch.rand(16, 3), density, starts, deltas)
-        extra = with_open_water_light(base, B_INF, gain).rgb - base.rgb
-        extra.sum().backward()
-        open_share = 1.0 - float(base.accumulation)
-        if learns:
-            torch.testing.assert_close(gain.grad, open_share * B_INF * torch.exp(gain.detach()))
-        else:
-            assert 0.2 < open_share < 0.95 and not gain.grad.any()
-        assert density.grad is None or not density.grad.any()
-
-
-@pytest.mark.parametrize("half", [torch.float16, torch.bfloat16])
-def test_open_water_light_stays_finite_in_half_precision_and_for_extreme_gains(half):
-    starts, deltas = uneven_bins(8, 0.1, 1e4, seed=1)
-    empty = render(torch.rand(8, 3), torch.zeros(8, 1), starts, deltas)
-    empty = dataclasses.replace(empty, rgb=empty.rgb.to(half), backscatter=empty.backscatter.to(half), accumulation=empty.accumulation.to(half))
-    for g in (1e4, -1e4, 0.0):
-        lit = with_open_water_light(empty, B_INF.to(half), torch.full((3,), g).to(half))
-        assert torch.isfinite(lit.rgb).all() and (lit.rgb >= 0).all()
-        torch.testing.assert_close(lit.rgb.double(), (B_INF * torch.exp(torch.tensor(max(min(g, 3.0), -3.0)))).double(), rtol=2e-2, atol=1e-3)
