@@ -316,7 +316,7 @@ def fit_replaces(fit: DensityFit, max_log_error: float) -> Bool[Tensor, "3"]:
     attenuation is not an estimate with an error of its own. It starts at the bound from the
     brightest SfM observations, above the truth, and ends on the side of the truth it started from
     (docs/history.md, 2026-11-25): at step 499 on path-traced water and fog it is 1.3-2.1 times the
-    truth (log error 0.26-0.73), where fits with ``s`` up to 0.2 are within 7-25%. A rule that also
+    truth (log error 0.25-0.74), where fits with ``s`` up to 0.2 are within 25%. A rule that also
     asked whether the fit rejects the trained value (by 1.96 ``s``) made the decision hang on the
     training run: on coastal water's blue (``s`` 0.18-0.20) it replaced in some runs and kept a
     value 28-41% high in others, and one SfM model trained in our layout and in the published one
