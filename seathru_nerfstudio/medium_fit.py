@@ -319,8 +319,8 @@ def fit_replaces(fit: DensityFit, max_log_error: float) -> Bool[Tensor, "3"]:
     truth (log error 0.25-0.74), where fits with ``s`` up to 0.2 are within 25%. A rule that also
     asked whether the fit rejects the trained value (by 1.96 ``s``) made the decision hang on the
     training run: on coastal water's blue (``s`` 0.18-0.20) it replaced in some runs and kept a
-    value 28-41% high in others, and one SfM model trained in our layout and in the published one
-    ended 26% apart in blue ``β_D`` (docs/history.md, 2026-11-28 (after 5d66277)). The fit's ``s``
+    value 28-34% high in others, and one SfM model trained in our layout and in the published one
+    ended 26% apart in blue ``β_D`` (docs/history.md, 2026-11-28 (84766a4, d3246d9 and its revert)). The fit's ``s``
     depends only on the observations and the veil, so every data path decides alike.
 
     A non-finite error replaces nothing (every comparison with NaN or inf is false)."""
