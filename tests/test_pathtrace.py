@@ -153,6 +153,25 @@ def test_scene_folder_layout_and_cache(tmp_path):
     assert generate(config) == out and (out / "scene.json").stat().st_mtime_ns == stamp
 
 
+def test_the_presets_sample_count_is_the_default_and_noise_falls_as_its_root():
+    """``--spp`` unset renders at the preset's count (the cache key says so: the same as spelling
+    it out, other than another count), and the Monte Carlo noise, the difference between two
+    seeds, falls as 1/sqrt(spp): 4x the samples, half the noise."""
+    turbid = PathtraceConfig(preset="turbid")
+    assert turbid.samples_per_pixel() == PRESETS["turbid"].spp > PRESETS["coastal"].spp
+    assert turbid.cache_key() == dataclasses.replace(turbid, spp=PRESETS["turbid"].spp).cache_key()
+    assert turbid.cache_key() != dataclasses.replace(turbid, spp=PRESETS["coastal"].spp).cache_key()
+    preset = PRESETS["turbid"]
+    layout = make_layout(0, 1, preset)
+    noise = {}
+    for spp in (4, 16):
+        renderer = Renderer(layout, preset, W, H, spp=spp)
+        a, b = (renderer.render_mode("medium", layout.poses[0], seed) for seed in (1, 2))
+        renderer.close()
+        noise[spp] = np.std(a - b) / np.mean(a + b)
+    assert noise[4] / noise[16] == pytest.approx(2.0, rel=0.25)
+
+
 def test_bad_options_fail_in_one_line(tmp_path):
     with pytest.raises(PathtraceError, match="unknown preset 'reef'"):
         generate(PathtraceConfig(preset="reef", output_dir=tmp_path / "x"))

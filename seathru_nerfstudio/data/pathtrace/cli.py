@@ -62,9 +62,9 @@ class PathtraceConfig:
     height: int = 160
     num_views: int = 24
     """Every 8th view (0, 8, 16, ...) is held out for val/test."""
-    spp: int = 256
-    """Samples per pixel: the Monte Carlo noise is kept (no denoising). At 64 the noise (~30% of
-    the signal per pixel in water) leaves SIFT nothing to match: no image registers."""
+    spp: Optional[int] = None
+    """Samples per pixel (default: the preset's, 256; turbid 1024). The Monte Carlo noise is kept
+    (no denoising); where it is above the texture (64 in water, 256 in turbid water) no image registers."""
     max_depth: int = 24
     """Longest light path (scattering events + bounces)."""
     poses: Literal["sfm", "truth"] = "sfm"
@@ -79,6 +79,10 @@ class PathtraceConfig:
     overwrite: bool = False
     """Replace a folder that holds a different scene."""
 
+    def samples_per_pixel(self) -> int:
+        """``spp``, or the preset's where it is not given."""
+        return self.spp if self.spp is not None else PRESETS[self.preset].spp
+
     def folder(self) -> Path:
         return Path(self.output_dir if self.output_dir is not None else DEFAULT_ROOT / self.preset).expanduser().absolute()
 
@@ -87,6 +91,7 @@ class PathtraceConfig:
         without the pose options, so a new pose run reuses them)."""
         skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_tries", "sfm_points_per_view"} if renders_only else set())
         options = {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
+        options["spp"] = self.samples_per_pixel()  # the default and its value name the same renders
         options["generator_version"] = GENERATOR_VERSION
         return hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -98,7 +103,7 @@ def validate(config: PathtraceConfig) -> None:
         raise PathtraceError("--width and --height must be at least 8 pixels")
     if config.num_views < 3:
         raise PathtraceError("--num-views must be at least 3")
-    if config.spp < 1 or config.max_depth < 1 or config.sfm_tries < 1:
+    if (config.spp is not None and config.spp < 1) or config.max_depth < 1 or config.sfm_tries < 1:
         raise PathtraceError("--spp, --max-depth and --sfm-tries must be at least 1")
 
 
@@ -141,7 +146,7 @@ def generate(config: PathtraceConfig) -> Path:
             views = _read_views(build, names)
             seconds, fit, variant = record["seconds_per_view"], record["best_fit_medium"], record["mitsuba_variant"]
         else:
-            renderer = Renderer(layout, preset, config.width, config.height, config.spp, config.max_depth, config.variant)
+            renderer = Renderer(layout, preset, config.width, config.height, config.samples_per_pixel(), config.max_depth, config.variant)
             try:
                 views, seconds = _render_all(renderer, layout, config, build, names)
                 variant = renderer.mi.variant()
@@ -154,7 +159,7 @@ def generate(config: PathtraceConfig) -> Path:
                 fit = fit_veil_and_backscatter([v["image"] for v in train], [v["clean"] for v in train], [v["range"] for v in train], preset.sigma_t)
         _write_medium(build, preset, fit, config)
         summary: Dict[str, Any] = {
-            "options": {**dataclasses.asdict(config), "output_dir": str(out)},
+            "options": {**dataclasses.asdict(config), "output_dir": str(out), "spp": config.samples_per_pixel()},
             "options_hash": key,
             "render_hash": render_key,
             "generator_version": GENERATOR_VERSION,
@@ -186,7 +191,7 @@ def generate(config: PathtraceConfig) -> Path:
     reg = registration
     poses = f"{reg['registered']}/{reg['total']} registered" if config.poses == "sfm" else "TRUE poses (diagnostic)"
     CONSOLE.print(
-        f"seathru-pathtrace: {config.preset}: {config.num_views} views {config.width}x{config.height} at {config.spp} spp "
+        f"seathru-pathtrace: {config.preset}: {config.num_views} views {config.width}x{config.height} at {config.samples_per_pixel()} spp "
         f"({seconds['total']:.1f} s/view), {poses}, into {out} "
         f"in {time.perf_counter() - start:.0f} s"
     )
