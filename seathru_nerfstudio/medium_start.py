@@ -92,6 +92,19 @@ class OpenWaterColour:
         self.open_rays += int(is_open.sum())
         self.rays += int(is_open.numel())
 
+    def pooled(self, device: torch.device | str = "cpu") -> "OpenWaterColour":
+        """These counts summed over every process of a distributed run (``self`` where there is none),
+        so that every process holds the same veil; ``device``: where the collective runs (the model's)."""
+        if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
+            return self
+        counts = torch.tensor([self.open_rays, self.rays], dtype=torch.float64)
+        packed = torch.cat([self.total, counts]).to(device)
+        torch.distributed.all_reduce(packed)
+        packed = packed.cpu()
+        pooled = OpenWaterColour()
+        pooled.total, pooled.open_rays, pooled.rays = packed[:3], int(packed[3]), int(packed[4])
+        return pooled
+
     def mean(self) -> Optional[Float[Tensor, "3"]]:
         """The open rays' mean colour, or ``None`` where under :data:`MIN_OPEN_FRACTION` of the rays were open."""
         if self.open_rays == 0 or self.open_rays < MIN_OPEN_FRACTION * self.rays:
@@ -177,7 +190,8 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
         return
     if config.research.medium_oracle is not None or model.medium_model == "none":
         return  # an oracle is the medium; clear air renders none
-    open_water = model.open_water_colour.mean()
+    read = model.open_water_colour.pooled(model.device)  # every process of a distributed run alike
+    open_water = read.mean()
     if open_water is not None:
         with torch.no_grad():
             learned = torch.sigmoid(model.medium_field.rgb_logit.double())
@@ -185,7 +199,7 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "
-            f"{model.open_water_colour.open_rays} open rays, held from here"
+            f"{read.open_rays} open rays, held from here"
         )
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:

@@ -159,3 +159,34 @@ def test_the_cpu_entry_point_trains_with_two_processes(tmp_path):
     assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000002.ckpt"]
     state = load_checkpoint(run / "nerfstudio_models" / "step-000000002.ckpt")
     assert any(k.startswith("_model.module.medium_field") for k in state["pipeline"])  # saved from the DDP wrapper
+
+
+def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
+    from seathru_nerfstudio.medium_start import OpenWaterColour
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=dist_url, world_size=WORLD, rank=local_rank)
+    try:
+        read = OpenWaterColour()
+        colour = torch.tensor([0.1, 0.2, 0.3]) * (local_rank + 1)  # each rank sees its own water
+        rays = (10, 30)[local_rank]
+        read.add(colour.expand(rays, 3), torch.ones(rays, 1))
+        alone = read.mean()
+        pooled = read.pooled("cpu")
+        torch.save({"alone": alone, "pooled": pooled.mean(), "counts": (pooled.open_rays, pooled.rays)}, Path(out) / f"read{local_rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
+    """The veil is read from the open rays of every process (10 rays of one colour on rank 0, 30 of
+    twice it on rank 1: the ray-weighted mean 1.75 times rank 0's), so that the ranks hold one veil;
+    each rank alone would hold its own."""
+    from seathru_nerfstudio.distributed import free_local_url
+
+    mp.spawn(_read_open_water, args=(free_local_url(), str(tmp_path)), nprocs=WORLD, join=True)
+    r0, r1 = (torch.load(tmp_path / f"read{r}.pt", weights_only=False) for r in range(WORLD))
+    water = torch.tensor([0.1, 0.2, 0.3], dtype=torch.float64)
+    assert not torch.allclose(r0["alone"], r1["alone"])
+    torch.testing.assert_close(r0["pooled"], water * (10 * 1 + 30 * 2) / 40, rtol=1e-6, atol=1e-7)
+    assert torch.equal(r0["pooled"], r1["pooled"]) and r0["counts"] == r1["counts"] == (40, 40)
