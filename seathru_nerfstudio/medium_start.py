@@ -12,7 +12,7 @@ brightens looking up), the veil in that direction becomes its own colour (the sc
 profile, :meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_profile`); both are held from
 then on (``SeathruModel.veil_held``). Path-traced coastal water, seed 7: 32.21 dB in the medium against
 30.37 under the mean alone and matched nerfacto's 32.17, the clean image unchanged (docs/history.md,
-2026-11-29). Learned on after entry instead, from the rays the object field leaves
+2026-11-28 (c4e946c)). Learned on after entry instead, from the rays the object field leaves
 open, the veil climbs as that field fills the darker open water (path-traced coastal: blue 0.41 at
 entry, 0.61 at step 1500, best fit 0.44), and the densities fitted under it at step 500 follow it
 (docs/history.md, 2026-11-28).
@@ -92,11 +92,11 @@ class OpenWaterColour:
     """The colour of the training rays the first stage's geometry leaves open, by elevation.
 
     Two things are read from it. Its :meth:`mean` is the veil of every ray, the surfaces' included;
-    the colour of its darkest tenth by elevation is closer to the surfaces' best-fit ``B∞`` (1-7%
+    the colour of its lowest tenth by elevation is closer to the surfaces' best-fit ``B∞`` (1-7%
     on path-traced turbid water, coastal water and fog, the mean 5-30% above it), but held as the
     surfaces' veil it cost the clean image up to 4.7 dB on the nearest third and doubled the mean
     depth error, while the densities trained after entry fall short of the haze it leaves
-    (docs/history.md, 2026-11-29). Its :meth:`profile`, the colour by elevation, is the veil of the
+    (docs/history.md, 2026-11-28 (c4e946c)). Its :meth:`profile`, the colour by elevation, is the veil of the
     open water looking up, where that is brighter than the mean."""
 
     def __init__(self) -> None:
