@@ -6,8 +6,7 @@ per sample. Three variants share one interface, ``medium(directions) -> MediumOu
 * :class:`MediumField`, the paper's MLP of the ray direction (``per-ray``): water whose
   colour and turbidity vary with the viewing direction, e.g. towards the surface;
 * :class:`SceneMedium`, nine learned constants (``per-scene``): one homogeneous water
-  body, which is what the SeaThru image formation model assumes, its veil scaled by a held
-  profile over the rays' elevation;
+  body, which is what the SeaThru image formation model assumes;
 * :class:`FixedMedium`, given constants (an oracle for experiments: the true medium).
 
 Each of them has six densities; :func:`tie` makes the simpler medium models of
@@ -171,16 +170,9 @@ def _expand(values: Tensor, directions: Tensor) -> Tensor:
     return values.to(directions.device).expand(*directions.shape[:-1], 3)
 
 
-VEIL_KNOTS = 10
-"""Knots of a scene medium's veil profile over the rays' elevation (:meth:`SceneMedium.set_veil_profile`)."""
-
-
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
-    learned constants (sigmoid and softplus, as the MLP's heads). The densities are the same for
-    every ray; the veil is ``c_med`` times a held gain that depends on the ray's elevation only
-    (:meth:`set_veil_profile`; 1 until it is set): light falls from above, so open water brightens
-    upwards while the water itself stays one body.
+    learned constants, the same for every ray (sigmoid and softplus, as the MLP's heads).
 
     Cheaper than :class:`MediumField` and without its freedom to give every ray its own
     water, which on a homogeneous scene lets the medium explain scene content per ray.
@@ -197,30 +189,6 @@ class SceneMedium(nn.Module):
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
         self.density_raw = nn.Parameter(torch.zeros(6))
         self.set_densities(densities)
-        self.register_buffer("veil_knots_up", torch.linspace(-1.0, 1.0, VEIL_KNOTS))
-        """The profile's knots: ``sin`` of the elevation (world +z, the cameras' mean up), ascending."""
-        self.register_buffer("veil_knots_gain", torch.ones(VEIL_KNOTS, 3))
-        """The veil at each knot over ``c_med`` (per channel, >= 0)."""
-
-    def set_veil_profile(self, up: Float[Tensor, "K"], gain: Float[Tensor, "K 3"]) -> None:
-        """Hold the veil's gain ``gain`` at the elevations ``up`` (``sin`` of the elevation,
-        ascending, ``K = VEIL_KNOTS``): between knots it is interpolated linearly in ``up``, beyond the
-        first or last it stays at that knot's."""
-        if up.shape != self.veil_knots_up.shape or gain.shape != self.veil_knots_gain.shape:
-            raise ValueError(f"set_veil_profile: {VEIL_KNOTS} knots expected, got {tuple(up.shape)} and {tuple(gain.shape)}")
-        with torch.no_grad():
-            self.veil_knots_up.copy_(up)
-            self.veil_knots_gain.copy_(gain.clamp_min(0.0))
-
-    def veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-        """The held gain of the veil for rays with these unit directions: piecewise linear in ``up =
-        directions_z`` through the knots, constant beyond them (knots that coincide are stepped over)."""
-        knots, gains = self.veil_knots_up, self.veil_knots_gain
-        up = directions[..., 2].float().clamp(-1.0, 1.0).contiguous()
-        right = torch.searchsorted(knots, up).clamp(1, len(knots) - 1)
-        left = right - 1
-        share = ((up - knots[left]) / (knots[right] - knots[left]).clamp_min(1e-6)).clamp(0.0, 1.0)
-        return torch.lerp(gains[left], gains[right], share[..., None])
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene
@@ -237,7 +205,7 @@ class SceneMedium(nn.Module):
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())
         return MediumOutputs(
-            rgb=(torch.sigmoid(self.rgb_logit.float()).to(directions.device) * self.veil_gain(directions)).clamp(max=1.0),
+            rgb=_expand(torch.sigmoid(self.rgb_logit.float()), directions),
             sigma_attn=_expand(densities[:3], directions),
             sigma_bs=_expand(densities[3:], directions),
         )

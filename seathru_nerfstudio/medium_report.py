@@ -9,10 +9,7 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   (``seathru-synth`` scenes: ``ground_truth/medium.json`` has ``"world_units": "m"``; any
   capture: ``"world_units": "m"`` in ``transforms.json``), else ``"world unit (scale
   unknown)"``: a COLMAP reconstruction has no scale, and its densities are per COLMAP unit.
-* ``B_inf``: the veiling light (backscatter at infinity), linear RGB; for a scene medium, looking
-  straight down: the veil of the surfaces, where the open water is no brighter.
-* ``veil_by_elevation`` (scene medium): the veil held at each knot of its profile over the rays'
-  elevation (``elevation_deg``, ``B_inf``), read from the open water at the end of the first stage.
+* ``B_inf``: the veiling light (backscatter at infinity), linear RGB.
 * ``attenuation_length``: ``1 / beta_D``, the distance over which the direct light falls to
   ``1/e`` (world units).
 * ``medium_model``: the model in use (``auto``'s choice once it has decided; ``seathru``
@@ -159,14 +156,6 @@ def medium_report(
         ]
     else:
         values = {key: value[0] for key, value in _per_world(model, torch.tensor([[0.0, 0.0, -1.0]])).items()}
-        knots = getattr(model.medium_field, "veil_knots_up", None)
-        if knots is not None:
-            up = knots.detach().double().cpu().clamp(-1.0, 1.0)
-            along = torch.stack([torch.sqrt(1.0 - up**2), torch.zeros_like(up), up], dim=-1)
-            colours = _per_world(model, along.float())["B_inf"]
-            report["veil_by_elevation"] = [
-                {"elevation_deg": math.degrees(math.asin(float(u))), "B_inf": _numbers(c)} for u, c in zip(up, colours)
-            ]
     report["beta_D"] = _numbers(values["beta_D"])
     report["beta_B"] = _numbers(values["beta_B"])
     report["B_inf"] = _numbers(values["B_inf"])

@@ -5,14 +5,9 @@ densities bounded by the SfM observations.
 empty scene, so gradient descent there teaches ``B∞`` the mean image, the objects included (the
 formula-drawn water demo: 0.093, 0.184, 0.328 at step 199 against 0.07, 0.2, 0.39). But the first
 stage also trains the object *geometry* from the SfM depths and the empty-space prior. Over its second
-half, :class:`OpenWaterColour` counts the colour of the training rays that geometry leaves open
-(transmittance above :data:`OPEN_SHARE`) by their elevation. At its end their mean colour becomes ``B∞``,
-and where the open water in some direction is brighter than that mean (light falls from above, so it
-brightens looking up), the veil in that direction becomes its own colour (the scene medium's veil
-profile, :meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_profile`); both are held from
-then on (``SeathruModel.veil_held``). Path-traced coastal water, seed 7: 32.21 dB in the medium against
-30.37 under the mean alone and matched nerfacto's 32.17, the clean image unchanged (docs/history.md,
-2026-11-28 (c4e946c)). Learned on after entry instead, from the rays the object field leaves
+half, :class:`OpenWaterColour` averages the colour of the training rays that geometry leaves open
+(transmittance above :data:`OPEN_SHARE`), and at its end that mean becomes ``B∞``, held from then
+on (``SeathruModel.veil_held``). Learned on after entry instead, from the rays the object field leaves
 open, the veil climbs as that field fills the darker open water (path-traced coastal: blue 0.41 at
 entry, 0.61 at step 1500, best fit 0.44), and the densities fitted under it at step 500 follow it
 (docs/history.md, 2026-11-28).
@@ -59,8 +54,7 @@ Units: ranges in world units, densities per world unit, colours linear.
 
 from __future__ import annotations
 
-import math
-from typing import Any, Optional, Tuple
+from typing import Any, Optional
 
 import torch
 from jaxtyping import Float
@@ -68,7 +62,6 @@ from torch import Tensor
 
 from nerfstudio.utils.rich_utils import CONSOLE
 
-from seathru_nerfstudio.medium_field import VEIL_KNOTS
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.phases import TrainingPhases
 
@@ -84,38 +77,19 @@ MIN_OPEN_FRACTION = 0.01
 """Fewer open rays than this share of those seen, and the veil learned in the first stage stays."""
 
 
-ELEVATION_BINS = 200
-"""The open rays are counted in this many bins of ``sin(elevation)`` over [-1, 1] (0.6° at the horizon)."""
-
-
 class OpenWaterColour:
-    """The colour of the training rays the first stage's geometry leaves open, by elevation.
-
-    Two things are read from it. Its :meth:`mean` is the veil of every ray, the surfaces' included;
-    the colour of its lowest tenth by elevation is closer to the surfaces' best-fit ``B∞`` (1-7%
-    on path-traced turbid water, coastal water and fog, the mean 5-30% above it), but held as the
-    surfaces' veil it cost the clean image up to 4.7 dB on the nearest third and doubled the mean
-    depth error, while the densities trained after entry fall short of the haze it leaves
-    (docs/history.md, 2026-11-28 (c4e946c)). Its :meth:`profile`, the colour by elevation, is the veil of the
-    open water looking up, where that is brighter than the mean."""
+    """The mean linear colour of the training rays the first stage's geometry leaves open."""
 
     def __init__(self) -> None:
-        self.total = torch.zeros(ELEVATION_BINS, 3, dtype=torch.float64)
-        self.up_total = torch.zeros(ELEVATION_BINS, dtype=torch.float64)
-        self.count = torch.zeros(ELEVATION_BINS, dtype=torch.float64)
+        self.total = torch.zeros(3, dtype=torch.float64)
         self.open_rays = 0
         self.rays = 0
 
-    def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"], up: Float[Tensor, "N 1"]) -> None:
-        """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past
-        the last sample, ``up`` the unit ray direction's world +z (``sin`` of the elevation)."""
+    def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"]) -> None:
+        """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past the last sample."""
         is_open = open_share.detach()[..., 0] > OPEN_SHARE
-        up_open = up.detach()[is_open, 0].double().clamp(-1.0, 1.0).cpu()
-        bins = ((up_open + 1.0) * (ELEVATION_BINS / 2)).long().clamp(0, ELEVATION_BINS - 1)
-        self.total.index_add_(0, bins, colours.detach()[is_open].double().cpu())
-        self.up_total.index_add_(0, bins, up_open)
-        self.count.index_add_(0, bins, torch.ones(len(bins), dtype=torch.float64))
-        self.open_rays += len(bins)
+        self.total += colours.detach()[is_open].double().sum(dim=0).cpu()
+        self.open_rays += int(is_open.sum())
         self.rays += int(is_open.numel())
 
     def pooled(self, device: torch.device | str = "cpu") -> "OpenWaterColour":
@@ -124,39 +98,18 @@ class OpenWaterColour:
         if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
             return self
         counts = torch.tensor([self.open_rays, self.rays], dtype=torch.float64)
-        packed = torch.cat([self.total.flatten(), self.up_total, self.count, counts]).to(device)
+        packed = torch.cat([self.total, counts]).to(device)
         torch.distributed.all_reduce(packed)
-        total, up_total, count, counts = packed.cpu().split([3 * ELEVATION_BINS, ELEVATION_BINS, ELEVATION_BINS, 2])
+        packed = packed.cpu()
         pooled = OpenWaterColour()
-        pooled.total, pooled.up_total, pooled.count = total.reshape(ELEVATION_BINS, 3), up_total, count
-        pooled.open_rays, pooled.rays = int(counts[0]), int(counts[1])
+        pooled.total, pooled.open_rays, pooled.rays = packed[:3], int(packed[3]), int(packed[4])
         return pooled
 
-    def enough(self) -> bool:
-        """At least :data:`MIN_OPEN_FRACTION` of the rays seen were open (and some were)."""
-        return self.open_rays > 0 and self.open_rays >= MIN_OPEN_FRACTION * self.rays
-
     def mean(self) -> Optional[Float[Tensor, "3"]]:
-        """The open rays' mean colour, or ``None`` where there were not :meth:`enough` of them."""
-        return self.total.sum(dim=0) / self.open_rays if self.enough() else None
-
-    def profile(self) -> Optional[Tuple[Float[Tensor, "K"], Float[Tensor, "K 3"]]]:
-        """The open water's colour by elevation: the open rays cut into ``K =`` :data:`VEIL_KNOTS`
-        groups of about equal count by elevation (whole bins, each to the group its middle ray falls in),
-        each group's mean ``sin(elevation)`` and mean colour, ascending (a group left empty repeats the
-        last). ``None`` where there were not :meth:`enough` open rays."""
-        if not self.enough():
+        """The open rays' mean colour, or ``None`` where under :data:`MIN_OPEN_FRACTION` of the rays were open."""
+        if self.open_rays == 0 or self.open_rays < MIN_OPEN_FRACTION * self.rays:
             return None
-        middle = torch.cumsum(self.count, 0) - self.count / 2
-        group = (middle * VEIL_KNOTS / self.open_rays).long().clamp(0, VEIL_KNOTS - 1)
-        count = torch.zeros(VEIL_KNOTS, dtype=torch.float64).index_add_(0, group, self.count)
-        up = torch.zeros(VEIL_KNOTS, dtype=torch.float64).index_add_(0, group, self.up_total)
-        colour = torch.zeros(VEIL_KNOTS, 3, dtype=torch.float64).index_add_(0, group, self.total)
-        filled = count > 0
-        last = torch.cummax(torch.where(filled, torch.arange(VEIL_KNOTS), 0), 0).values  # the last filled group so far
-        first = int(filled.nonzero()[0])
-        source = torch.where(filled.cumsum(0) > 0, last, torch.full_like(last, first))
-        return up[source] / count[source], colour[source] / count[source, None]
+        return self.total / self.open_rays
 
 
 DARK_QUANTILE = 0.01
@@ -226,9 +179,8 @@ def attenuation_cap(
 
 
 def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
-    """Callback at the end of the first stage: set the veiling light to the open water's mean colour,
-    raised by elevation to the open water's own colour where that is brighter (:class:`OpenWaterColour`,
-    where it saw enough open rays, pooled over the processes of a distributed run), then lower the scene medium's backscatter densities to
+    """Callback at the end of the first stage: set the veiling light to the open water's colour
+    (:class:`OpenWaterColour`, where it saw enough open rays), then lower the scene medium's backscatter densities to
     :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
     learned so far, then its attenuations to :func:`attenuation_cap` under that backscatter; a
     density already below its cap stays. ``optimizers``: the trainer's, whose
@@ -239,19 +191,15 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
     if config.research.medium_oracle is not None or model.medium_model == "none":
         return  # an oracle is the medium; clear air renders none
     read = model.open_water_colour.pooled(model.device)  # every process of a distributed run alike
-    level, profile = read.mean(), read.profile()
-    if level is not None and profile is not None:
-        level = level.clamp(1e-4, 1 - 1e-4)
-        up, colours = profile
-        colours = torch.maximum(colours, level)  # the mean, and the open water's own colour where brighter
+    open_water = read.mean()
+    if open_water is not None:
         with torch.no_grad():
             learned = torch.sigmoid(model.medium_field.rgb_logit.double())
-            model.medium_field.rgb_logit.copy_(torch.logit(level).to(model.medium_field.rgb_logit))
-        model.medium_field.set_veil_profile(up.float(), (colours / level).float())
+            model.medium_field.rgb_logit.copy_(torch.logit(open_water.clamp(1e-4, 1 - 1e-4)).to(model.medium_field.rgb_logit))
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
-            f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(level)}, the mean colour of {read.open_rays} "
-            f"open rays, {show(colours[-1])} at {math.degrees(math.asin(float(up[-1]))):.1f}° up; held from here"
+            f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "
+            f"{read.open_rays} open rays, held from here"
         )
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:

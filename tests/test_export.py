@@ -12,7 +12,6 @@ vertex lies in its open water (where the true range is infinite), and colours ar
 from __future__ import annotations
 
 import json
-import math
 import sys
 from pathlib import Path
 from typing import Dict, List, Tuple
@@ -436,16 +435,6 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     model.fit_log_error.copy_(torch.tensor([0.01, 0.02, 0.2], dtype=torch.float64))
     fit = medium_report.medium_report(model)["fit"]
     assert fit["standard_error_beta_D"] == pytest.approx((tied * torch.tensor([0.01, 0.02, 0.2])).tolist())
-    from seathru_nerfstudio.medium_field import VEIL_KNOTS
-
-    knots = torch.linspace(-0.1, 0.4, VEIL_KNOTS)  # the veil by elevation: B_inf looking down is the first knot's
-    model.medium_field.set_veil_profile(knots, (1.0 + knots[:, None] + 0.1).expand(VEIL_KNOTS, 3))
-    profiled = medium_report.medium_report(model)
-    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double())
-    assert profiled["B_inf"] == pytest.approx(veil.tolist(), rel=1e-6)
-    elevations = [row["elevation_deg"] for row in profiled["veil_by_elevation"]]
-    assert elevations == pytest.approx([math.degrees(math.asin(float(u))) for u in knots], abs=1e-4)
-    assert profiled["veil_by_elevation"][-1]["B_inf"] == pytest.approx((veil * 1.5).tolist(), rel=1e-5)
 
     ray = tiny_model(medium_model="seathru", medium_scope="ray").eval()
     report = medium_report.medium_report(ray, view_directions=torch.tensor([[0.0, 0.0, -1.0]]))

@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from seathru_nerfstudio.medium_field import VEIL_KNOTS
 from seathru_nerfstudio.medium_start import (
-    ELEVATION_BINS,
     OPEN_SHARE,
     OpenWaterColour,
     apply_density_caps,
@@ -145,114 +143,38 @@ def test_the_caps_lower_the_densities_at_the_end_of_the_first_stage_only(capsys)
     assert torch.equal(bare.medium_field.density_raw.detach(), bare_before)
 
 
-def test_the_open_water_colour_counts_only_the_rays_the_geometry_leaves_open():
+def test_the_open_water_colour_is_the_mean_of_the_rays_the_geometry_leaves_open():
     """Only rays open past :data:`OPEN_SHARE` count (a half-open silhouette ray does not), over every
-    batch added; under 1% of the rays open, or none, there is no profile. Rays at one elevation
-    give every knot their mean colour at that elevation."""
+    batch added; under 1% of the rays open, or none, there is no estimate."""
     water = torch.tensor([0.07, 0.2, 0.39])
-    level = lambda n: torch.full((n, 1), 0.1)  # noqa: E731  (rays 5.7° above the horizon)
     estimate = OpenWaterColour()
-    assert estimate.profile() is None
+    assert estimate.mean() is None
     colours = torch.stack([water, water + 0.02, torch.tensor([0.9, 0.1, 0.1]), torch.tensor([0.3, 0.3, 0.3])])
     shares = torch.tensor([[1.0], [OPEN_SHARE + 1e-3], [OPEN_SHARE - 1e-3], [0.5]])
-    estimate.add(colours, shares, level(4))
-    estimate.add(colours[:1], shares[:1], level(1))
-    up, colour = estimate.profile()
-    mean = ((2 * water + water + 0.02) / 3).double()
-    torch.testing.assert_close(estimate.mean(), mean, rtol=1e-6, atol=1e-7)
-    torch.testing.assert_close(colour, mean.expand(VEIL_KNOTS, 3), rtol=1e-6, atol=1e-7)
-    torch.testing.assert_close(up, torch.full((VEIL_KNOTS,), 0.1, dtype=torch.float64))
+    estimate.add(colours, shares)
+    estimate.add(colours[:1], shares[:1])
+    torch.testing.assert_close(estimate.mean(), ((2 * water + water + 0.02) / 3).double(), rtol=1e-6, atol=1e-7)
     assert (estimate.open_rays, estimate.rays) == (3, 5)
     sparse = OpenWaterColour()
-    sparse.add(water.expand(1000, 3), torch.cat([torch.ones(9, 1), torch.zeros(991, 1)]), level(1000))
-    assert sparse.profile() is None and sparse.mean() is None  # 0.9% open
-    sparse.add(water.expand(2, 3), torch.ones(2, 1), level(2))
-    torch.testing.assert_close(sparse.profile()[1][0], water.double())
+    sparse.add(water.expand(1000, 3), torch.cat([torch.ones(9, 1), torch.zeros(991, 1)]))
+    assert sparse.mean() is None  # 0.9% open
+    sparse.add(water.expand(2, 3), torch.ones(2, 1))
+    torch.testing.assert_close(sparse.mean(), water.double())
 
 
-def test_the_open_water_profile_is_the_mean_of_equal_shares_by_elevation():
-    """Open water brightening upwards, in any order over batches: knot ``k`` is the mean elevation and
-    colour of the ``k``-th tenth of the open rays by elevation (up to the bins' width), ascending; the
-    lowest lies below the mean of all."""
-    n = 2000
-    up = torch.linspace(-0.2, 0.6, n)[torch.randperm(n, generator=torch.Generator().manual_seed(0))]
-    colours = 0.1 + 0.5 * (up[:, None] + 0.2) * torch.tensor([1.0, 2.0, 3.0])
-    estimate = OpenWaterColour()
-    estimate.add(colours[:1200], torch.ones(1200, 1), up[:1200, None])
-    estimate.add(colours[1200:], torch.ones(800, 1), up[1200:, None])
-    knots_up, knots_colour = estimate.profile()
-    order = torch.argsort(up)
-    tenths_up = up[order].double().reshape(VEIL_KNOTS, -1).mean(dim=1)
-    tenths_colour = colours[order].double().reshape(VEIL_KNOTS, -1, 3).mean(dim=1)
-    bin_width = 2.0 / ELEVATION_BINS  # whole bins go to a group: its edges move by up to one bin
-    torch.testing.assert_close(knots_up, tenths_up, rtol=0.0, atol=bin_width)
-    torch.testing.assert_close(knots_colour, tenths_colour, rtol=0.0, atol=1.5 * bin_width)
-    assert torch.all(knots_up[1:] > knots_up[:-1])
-    assert torch.all(knots_colour[0] < colours.double().mean(dim=0) - 0.1)
-
-
-def test_a_group_left_empty_repeats_the_nearest_filled_one_below_it_or_above_the_first():
-    """Two elevations holding 30% and 70% of the open rays: each bin goes whole to the group of its
-    middle ray (15%: group 1, 65%: group 6). Group 0 takes group 1's values, groups 2-5 group 1's,
-    7-9 group 6's: the profile is the lower colour up to its elevation and the upper from its own."""
-    low, high = torch.tensor([0.05, 0.1, 0.2]), torch.tensor([0.1, 0.3, 0.5])
-    up = torch.cat([torch.full((30, 1), -0.1), torch.full((70, 1), 0.3)])
-    estimate = OpenWaterColour()
-    estimate.add(torch.cat([low.expand(30, 3), high.expand(70, 3)]), torch.ones(100, 1), up)
-    knots_up, knots_colour = estimate.profile()
-    lower = torch.arange(VEIL_KNOTS) < 6
-    torch.testing.assert_close(knots_colour, torch.where(lower[:, None], low, high).double())
-    torch.testing.assert_close(knots_up, torch.where(lower, -0.1, 0.3).double())
-
-
-def test_the_veil_becomes_the_open_water_mean_raised_where_the_open_water_is_brighter(capsys):
-    """The callback at the first stage's last step sets the scene medium's veil to the open rays' mean
-    colour and says so; a ray below the open water gets that mean, and one looking up beyond it the
-    highest knot's colour, which is brighter. Before that step, or with no estimate, the veil is unchanged."""
+def test_the_veil_becomes_the_open_water_colour_at_the_end_of_the_first_stage(capsys):
+    """The callback at the first stage's last step sets the scene medium's veil to the estimate and
+    says so; before that step, or with no estimate, the veil is unchanged."""
     model = tiny_model(medium_first_steps=5, medium_fit_step=10)
     water = torch.tensor([0.07, 0.2, 0.39])
-    up = torch.linspace(-0.1, 0.3, 100)[:, None]
-    model.open_water_colour.add(water + up * torch.tensor([0.1, 0.2, 0.4]), torch.ones(100, 1), up)
+    model.open_water_colour.add(water.expand(10, 3), torch.ones(10, 1))
     before = torch.sigmoid(model.medium_field.rgb_logit).detach().clone()
     apply_density_caps(model, 3)
     torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach(), before)
     apply_density_caps(model, 4)
-    mean, (knots_up, knots_colour) = model.open_water_colour.mean(), model.open_water_colour.profile()
-    torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach().double(), mean, rtol=1e-5, atol=1e-6)
-    assert "the mean colour of 100 open rays" in capsys.readouterr().out
-    directions = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, -3.0], [1.0, 0.0, 3.0]]), dim=-1)
-    rendered = model.medium_field(directions).rgb.double()  # below the lowest knot and above the highest
-    torch.testing.assert_close(rendered[0], mean, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(rendered[1], knots_colour[-1], rtol=1e-5, atol=1e-6)
-    assert torch.all(knots_colour[0] < mean) and torch.all(knots_colour[-1] > mean)
+    torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach(), water, rtol=1e-5, atol=1e-6)
+    assert "10 open rays, held from here" in capsys.readouterr().out
     none_open = tiny_model(medium_first_steps=5, medium_fit_step=10)
     before = torch.sigmoid(none_open.medium_field.rgb_logit).detach().clone()
     apply_density_caps(none_open, 4)
     torch.testing.assert_close(torch.sigmoid(none_open.medium_field.rgb_logit).detach(), before)
-
-
-def test_the_scene_veil_is_its_colour_times_a_gain_linear_in_elevation_between_knots():
-    """Unset, the gain is 1 in every direction. Set to a gain linear in ``up``, the veil is
-    ``c_med (1 + a (up - up_0))`` between the first and last knot (linear interpolation is exact
-    there) and the end knots' beyond them; knots that coincide give a step, finite, as do fp16
-    directions; the gradient reaches ``c_med``."""
-    from seathru_nerfstudio.medium_field import SceneMedium
-
-    colour = torch.tensor([0.1, 0.2, 0.4])
-    medium = SceneMedium(init_density=0.3, init_rgb=colour.tolist())
-    directions = torch.nn.functional.normalize(torch.randn(500, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
-    torch.testing.assert_close(medium(directions).rgb, colour.expand(500, 3))
-    slope = torch.tensor([1.0, 0.5, 0.25])
-    knots = torch.linspace(-0.3, 0.5, VEIL_KNOTS)
-    medium.set_veil_profile(knots, 1 + 2 * (knots[:, None] + 0.3) * slope)
-    up = directions[:, 2].clamp(-0.3, 0.5)
-    torch.testing.assert_close(medium(directions).rgb, colour * (1 + 2 * (up[:, None] + 0.3) * slope), rtol=1e-5, atol=1e-6)
-    step = torch.cat([torch.full((5,), -0.1), torch.full((5,), 0.2)])
-    medium.set_veil_profile(step, torch.cat([torch.ones(5, 3), torch.full((5, 3), 2.0)]))
-    rgb = medium(directions.half()).rgb
-    assert torch.isfinite(rgb).all()
-    below, above = directions[:, 2] < -0.1, directions[:, 2] > 0.2
-    torch.testing.assert_close(rgb[below], colour.expand(int(below.sum()), 3))
-    torch.testing.assert_close(rgb[above], (2 * colour).expand(int(above.sum()), 3))
-    medium(directions).rgb.sum().backward()
-    assert medium.rgb_logit.grad is not None and medium.rgb_logit.grad.abs().min() > 0
