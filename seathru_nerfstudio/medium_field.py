@@ -172,7 +172,10 @@ def _expand(values: Tensor, directions: Tensor) -> Tensor:
 
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
-    learned constants, the same for every ray (sigmoid and softplus, as the MLP's heads).
+    learned constants (sigmoid and softplus, as the MLP's heads). The densities are the same for
+    every ray; the veil is ``c_med`` for every ray except those looking up past a held elevation,
+    where it rises linearly (:meth:`set_veil_rise`; no rise until it is set): light falls from
+    above, so open water brightens looking up while the water itself stays one body.
 
     Cheaper than :class:`MediumField` and without its freedom to give every ray its own
     water, which on a homogeneous scene lets the medium explain scene content per ray.
@@ -189,6 +192,21 @@ class SceneMedium(nn.Module):
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
         self.density_raw = nn.Parameter(torch.zeros(6))
         self.set_densities(densities)
+        self.register_buffer("veil_rise_from", torch.tensor(1.0))
+        """Where the veil starts to rise: ``sin`` of the elevation (world +z, the cameras' mean up)."""
+        self.register_buffer("veil_rise", torch.zeros(3))
+        """The veil's rise over ``c_med`` per unit of ``sin(elevation)`` above :attr:`veil_rise_from` (per channel, >= 0)."""
+
+    def set_veil_rise(self, start: float, rise: Float[Tensor, "3"]) -> None:
+        """Hold the veil at ``c_med (1 + rise max(0, up - start))``, ``up = sin(elevation)``."""
+        with torch.no_grad():
+            self.veil_rise_from.fill_(float(start))
+            self.veil_rise.copy_(rise.clamp_min(0.0))
+
+    def veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+        """``1 + rise max(0, d_z - start)`` for rays with these unit directions (1 below ``start``)."""
+        above = (directions[..., 2:3].float().clamp(-1.0, 1.0) - self.veil_rise_from).clamp_min(0.0)
+        return 1.0 + self.veil_rise * above
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene
@@ -205,7 +223,7 @@ class SceneMedium(nn.Module):
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())
         return MediumOutputs(
-            rgb=_expand(torch.sigmoid(self.rgb_logit.float()), directions),
+            rgb=(torch.sigmoid(self.rgb_logit.float()).to(directions.device) * self.veil_gain(directions)).clamp(max=1.0),
             sigma_attn=_expand(densities[:3], directions),
             sigma_bs=_expand(densities[3:], directions),
         )

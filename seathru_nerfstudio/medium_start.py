@@ -54,7 +54,7 @@ Units: ranges in world units, densities per world unit, colours linear.
 
 from __future__ import annotations
 
-from typing import Any, Optional
+from typing import Any, Optional, Tuple
 
 import torch
 from jaxtyping import Float
@@ -78,31 +78,40 @@ MIN_OPEN_FRACTION = 0.01
 
 
 class OpenWaterColour:
-    """The mean linear colour of the training rays the first stage's geometry leaves open."""
+    """The colour of the training rays the first stage's geometry leaves open, and how it changes
+    with their elevation ``up = sin(elevation)`` (world +z): the sums of a least-squares line."""
 
     def __init__(self) -> None:
         self.total = torch.zeros(3, dtype=torch.float64)
+        self.total_up_colour = torch.zeros(3, dtype=torch.float64)
+        self.total_up = torch.zeros(2, dtype=torch.float64)  # sums of up and up^2
         self.open_rays = 0
         self.rays = 0
 
-    def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"]) -> None:
-        """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past the last sample."""
+    def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"], up: Float[Tensor, "N 1"]) -> None:
+        """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past
+        the last sample, ``up`` the unit ray direction's world +z."""
         is_open = open_share.detach()[..., 0] > OPEN_SHARE
-        self.total += colours.detach()[is_open].double().sum(dim=0).cpu()
-        self.open_rays += int(is_open.sum())
+        colour = colours.detach()[is_open].double().cpu()
+        up_open = up.detach()[is_open].double().clamp(-1.0, 1.0).cpu()
+        self.total += colour.sum(dim=0)
+        self.total_up_colour += (up_open * colour).sum(dim=0)
+        self.total_up += torch.stack([up_open.sum(), (up_open**2).sum()])
+        self.open_rays += int(colour.shape[0])
         self.rays += int(is_open.numel())
 
     def pooled(self, device: torch.device | str = "cpu") -> "OpenWaterColour":
-        """These counts summed over every process of a distributed run (``self`` where there is none),
-        so that every process holds the same veil; ``device``: where the collective runs (the model's)."""
+        """These sums over every process of a distributed run (``self`` where there is none), so that
+        every process holds the same veil; ``device``: where the collective runs (the model's)."""
         if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
             return self
         counts = torch.tensor([self.open_rays, self.rays], dtype=torch.float64)
-        packed = torch.cat([self.total, counts]).to(device)
+        packed = torch.cat([self.total, self.total_up_colour, self.total_up, counts]).to(device)
         torch.distributed.all_reduce(packed)
         packed = packed.cpu()
         pooled = OpenWaterColour()
-        pooled.total, pooled.open_rays, pooled.rays = packed[:3], int(packed[3]), int(packed[4])
+        pooled.total, pooled.total_up_colour, pooled.total_up = packed[:3], packed[3:6], packed[6:8]
+        pooled.open_rays, pooled.rays = int(packed[8]), int(packed[9])
         return pooled
 
     def mean(self) -> Optional[Float[Tensor, "3"]]:
@@ -110,6 +119,19 @@ class OpenWaterColour:
         if self.open_rays == 0 or self.open_rays < MIN_OPEN_FRACTION * self.rays:
             return None
         return self.total / self.open_rays
+
+    def rise(self) -> Optional[Tuple[float, Float[Tensor, "3"]]]:
+        """``(mean up, slope)``: the open rays' mean ``sin(elevation)`` and the least-squares slope of
+        their colour over it (per channel, colour per unit of ``up``; 0 where their elevations spread
+        by under 1e-4 in ``up``), or ``None`` where :meth:`mean` is."""
+        if self.mean() is None:
+            return None
+        n = self.open_rays
+        mean_up = float(self.total_up[0]) / n
+        spread = float(self.total_up[1]) / n - mean_up**2
+        if spread < 1e-8:
+            return mean_up, torch.zeros(3, dtype=torch.float64)
+        return mean_up, (self.total_up_colour / n - mean_up * self.total / n) / spread
 
 
 DARK_QUANTILE = 0.01
@@ -191,15 +213,18 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
     if config.research.medium_oracle is not None or model.medium_model == "none":
         return  # an oracle is the medium; clear air renders none
     read = model.open_water_colour.pooled(model.device)  # every process of a distributed run alike
-    open_water = read.mean()
-    if open_water is not None:
+    open_water, rise = read.mean(), read.rise()
+    if open_water is not None and rise is not None:
+        open_water = open_water.clamp(1e-4, 1 - 1e-4)
         with torch.no_grad():
             learned = torch.sigmoid(model.medium_field.rgb_logit.double())
-            model.medium_field.rgb_logit.copy_(torch.logit(open_water.clamp(1e-4, 1 - 1e-4)).to(model.medium_field.rgb_logit))
+            model.medium_field.rgb_logit.copy_(torch.logit(open_water).to(model.medium_field.rgb_logit))
+        gain = rise[1].clamp_min(0.0) / open_water  # brighter looking up only: light falls from above
+        model.medium_field.set_veil_rise(rise[0], gain.float())
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "
-            f"{read.open_rays} open rays, held from here"
+            f"{read.open_rays} open rays, rising by {show(gain)} per unit of sin(elevation) above {rise[0]:.3g}; held from here"
         )
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:

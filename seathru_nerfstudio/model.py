@@ -325,6 +325,7 @@ class SeathruModel(NerfactoModel):
             outputs["weights_list"] = weights_list
             outputs["ray_samples_list"] = ray_samples_list
             outputs["transmittance"] = render.transmittance if geometry is None else geometry[1]
+            outputs["direction_up"] = ray_bundle.directions[..., 2:3]  # world +z: the cameras' mean up (nerfstudio's "up" orientation)
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
             if envelope is not None:
@@ -366,8 +367,8 @@ class SeathruModel(NerfactoModel):
             loss_dict["rgb_loss"] = rawnerf_loss(outputs["rgb"], image, eps=research.rawnerf_eps)
         no_geometry_yet = self.object_frozen and "depth_image" not in batch and research.depth_source == "sfm"
         if self.training and self.object_frozen and not no_geometry_yet and self.phases.reads_open_water:
-            weights, transmittance = outputs["weights_list"][-1], outputs["transmittance"]
-            self.open_water_colour.add(image, transmittance[..., -1, :] - weights[..., -1, :])  # T past the last sample
+            past_last = outputs["transmittance"][..., -1, :] - outputs["weights_list"][-1][..., -1, :]  # T past the last sample
+            self.open_water_colour.add(image, past_last, outputs["direction_up"])
         prior_weight = self.phases.binary_prior_weight
         if self.training and prior_weight > 0 and not self.clear_air and not no_geometry_yet:
             loss_dict["binary_prior_loss"] = prior_weight * binary_transmittance_loss(
@@ -402,9 +403,8 @@ class SeathruModel(NerfactoModel):
         the SfM ranges under the veiling light learned so far (held here)."""
         z_depth = batch["depth_image"].to(self.device)  # scene units; 0 = unknown
         ray_range = z_depth * outputs.get("directions_norm", torch.ones_like(z_depth))
-        veil = outputs["medium_rgb"].detach()
+        veil, quantile = outputs["medium_rgb"].detach(), self.config.research.envelope_quantile
         sigma_attn, sigma_bs = outputs["medium_densities_for_envelope"].split(3, dim=-1)
-        quantile = self.config.research.envelope_quantile
         loss = backscatter_envelope_loss(image, ray_range, veil, sigma_bs, quantile)
         if self.config.research.envelope_densities == "both":
             loss = loss + backscatter_envelope_loss(image, ray_range, veil, sigma_attn, quantile)

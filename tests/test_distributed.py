@@ -170,7 +170,7 @@ def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
         read = OpenWaterColour()
         colour = torch.tensor([0.1, 0.2, 0.3]) * (local_rank + 1)  # each rank sees its own water
         rays = (10, 30)[local_rank]
-        read.add(colour.expand(rays, 3), torch.ones(rays, 1))
+        read.add(colour.expand(rays, 3), torch.ones(rays, 1), torch.full((rays, 1), (-0.1, 0.2)[local_rank]))
         alone = read.mean()
         pooled = read.pooled("cpu")
         torch.save({"alone": alone, "pooled": pooled.mean(), "counts": (pooled.open_rays, pooled.rays)}, Path(out) / f"read{local_rank}.pt")

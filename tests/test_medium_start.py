@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 import torch
 
 from seathru_nerfstudio.medium_start import (
@@ -151,14 +152,14 @@ def test_the_open_water_colour_is_the_mean_of_the_rays_the_geometry_leaves_open(
     assert estimate.mean() is None
     colours = torch.stack([water, water + 0.02, torch.tensor([0.9, 0.1, 0.1]), torch.tensor([0.3, 0.3, 0.3])])
     shares = torch.tensor([[1.0], [OPEN_SHARE + 1e-3], [OPEN_SHARE - 1e-3], [0.5]])
-    estimate.add(colours, shares)
-    estimate.add(colours[:1], shares[:1])
+    estimate.add(colours, shares, torch.zeros(4, 1))
+    estimate.add(colours[:1], shares[:1], torch.zeros(1, 1))
     torch.testing.assert_close(estimate.mean(), ((2 * water + water + 0.02) / 3).double(), rtol=1e-6, atol=1e-7)
     assert (estimate.open_rays, estimate.rays) == (3, 5)
     sparse = OpenWaterColour()
-    sparse.add(water.expand(1000, 3), torch.cat([torch.ones(9, 1), torch.zeros(991, 1)]))
+    sparse.add(water.expand(1000, 3), torch.cat([torch.ones(9, 1), torch.zeros(991, 1)]), torch.zeros(1000, 1))
     assert sparse.mean() is None  # 0.9% open
-    sparse.add(water.expand(2, 3), torch.ones(2, 1))
+    sparse.add(water.expand(2, 3), torch.ones(2, 1), torch.zeros(2, 1))
     torch.testing.assert_close(sparse.mean(), water.double())
 
 
@@ -167,14 +168,43 @@ def test_the_veil_becomes_the_open_water_colour_at_the_end_of_the_first_stage(ca
     says so; before that step, or with no estimate, the veil is unchanged."""
     model = tiny_model(medium_first_steps=5, medium_fit_step=10)
     water = torch.tensor([0.07, 0.2, 0.39])
-    model.open_water_colour.add(water.expand(10, 3), torch.ones(10, 1))
+    model.open_water_colour.add(water.expand(10, 3), torch.ones(10, 1), torch.zeros(10, 1))
     before = torch.sigmoid(model.medium_field.rgb_logit).detach().clone()
     apply_density_caps(model, 3)
     torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach(), before)
     apply_density_caps(model, 4)
     torch.testing.assert_close(torch.sigmoid(model.medium_field.rgb_logit).detach(), water, rtol=1e-5, atol=1e-6)
-    assert "10 open rays, held from here" in capsys.readouterr().out
+    assert "the colour of 10 open rays" in capsys.readouterr().out
     none_open = tiny_model(medium_first_steps=5, medium_fit_step=10)
     before = torch.sigmoid(none_open.medium_field.rgb_logit).detach().clone()
     apply_density_caps(none_open, 4)
     torch.testing.assert_close(torch.sigmoid(none_open.medium_field.rgb_logit).detach(), before)
+
+
+def test_the_open_water_rise_is_the_least_squares_slope_of_its_colour_over_elevation():
+    """Colours linear in ``up`` over any batches: the slope and the mean elevation are recovered
+    exactly; a level view (no spread of elevation) has no slope; the model's veil then rises
+    above the mean elevation by that slope and is the mean below it, and never falls looking up."""
+    from seathru_nerfstudio.medium_field import SceneMedium
+
+    up = torch.linspace(-0.2, 0.4, 300)[:, None]
+    slope = torch.tensor([0.1, 0.3, -0.2])
+    colours = torch.tensor([0.05, 0.2, 0.4]) + up * slope
+    estimate = OpenWaterColour()
+    estimate.add(colours[:100], torch.ones(100, 1), up[:100])
+    estimate.add(colours[100:], torch.ones(200, 1), up[100:])
+    mean_up, fitted = estimate.rise()
+    assert mean_up == pytest.approx(0.1, abs=1e-6)  # float32 elevations
+    torch.testing.assert_close(fitted, slope.double(), rtol=1e-5, atol=1e-6)
+    level = OpenWaterColour()
+    level.add(colours, torch.ones(300, 1), torch.zeros(300, 1))
+    assert torch.equal(level.rise()[1], torch.zeros(3, dtype=torch.float64))
+
+    medium = SceneMedium(init_rgb=estimate.mean().tolist())
+    medium.set_veil_rise(mean_up, (fitted.clamp_min(0) / estimate.mean()).float())
+    directions = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, -1.0], [1.0, 0.0, 0.5], [1.0, 0.0, 1.0]]), dim=-1)
+    veil = medium(directions).rgb.double()
+    expected = estimate.mean() + fitted.clamp_min(0) * (directions[:, 2:3].double() - mean_up).clamp_min(0)
+    torch.testing.assert_close(veil, expected, rtol=1e-5, atol=1e-6)
+    assert torch.all(veil[2] >= veil[1]) and torch.all(veil[1] >= veil[0])
+    assert torch.isfinite(medium(directions.half()).rgb).all()
