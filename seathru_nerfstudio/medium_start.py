@@ -7,7 +7,13 @@ formula-drawn water demo: 0.093, 0.184, 0.328 at step 199 against 0.07, 0.2, 0.3
 stage also trains the object *geometry* from the SfM depths and the empty-space prior. Over its second
 half, :class:`OpenWaterColour` averages the colour of the training rays that geometry leaves open
 (transmittance above :data:`OPEN_SHARE`), and at its end that mean becomes ``B∞``, held from then
-on (``SeathruModel.veil_held``). Learned on after entry instead, from the rays the object field leaves
+on (``SeathruModel.veil_held``). Light falls from above, so the open water brightens looking up: the
+veil of rays looking up past the open rays' mean elevation rises by the least-squares slope of their
+colour over ``sin(elevation)`` (held too; never falls: :meth:`OpenWaterColour.rise`,
+:meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_rise`). Path-traced coastal water, seed 7:
+32.11 dB in the medium against 30.37 with one constant veil (docs/history.md, 2026-11-28 (eba0fe7)).
+A rise fitted to all the open rays, unlike a maximum over groups of them, is not moved by one group
+that holds object colour (the 48×36 water check's open water filled under the maximum). Learned on after entry instead, from the rays the object field leaves
 open, the veil climbs as that field fills the darker open water (path-traced coastal: blue 0.41 at
 entry, 0.61 at step 1500, best fit 0.44), and the densities fitted under it at step 500 follow it
 (docs/history.md, 2026-11-28).
@@ -79,7 +85,8 @@ MIN_OPEN_FRACTION = 0.01
 
 class OpenWaterColour:
     """The colour of the training rays the first stage's geometry leaves open, and how it changes
-    with their elevation ``up = sin(elevation)`` (world +z): the sums of a least-squares line."""
+    with their elevation ``up = sin(elevation)`` (world +z, nerfstudio's "up" orientation): the
+    sums of a least-squares line."""
 
     def __init__(self) -> None:
         self.total = torch.zeros(3, dtype=torch.float64)
@@ -201,8 +208,9 @@ def attenuation_cap(
 
 
 def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
-    """Callback at the end of the first stage: set the veiling light to the open water's colour
-    (:class:`OpenWaterColour`, where it saw enough open rays), then lower the scene medium's backscatter densities to
+    """Callback at the end of the first stage: set the veiling light to the open water's mean colour
+    and its rise looking up (:class:`OpenWaterColour`, where it saw enough open rays, pooled over the
+    processes of a distributed run), then lower the scene medium's backscatter densities to
     :func:`backscatter_density_cap` of the dataparser's SfM observations under the veiling light
     learned so far, then its attenuations to :func:`attenuation_cap` under that backscatter; a
     density already below its cap stays. ``optimizers``: the trainer's, whose
