@@ -196,17 +196,21 @@ class SceneMedium(nn.Module):
         """Where the veil starts to rise: ``sin`` of the elevation (world +z, the cameras' mean up)."""
         self.register_buffer("veil_rise", torch.zeros(3))
         """The veil's rise over ``c_med`` per unit of ``sin(elevation)`` above :attr:`veil_rise_from` (per channel, >= 0)."""
+        self.register_buffer("veil_rise_to", torch.tensor(1.0))
+        """Where the rise ends (``sin`` of the elevation): above it the veil stays at its value there."""
 
-    def set_veil_rise(self, start: float, rise: Float[Tensor, "3"]) -> None:
-        """Hold the veil at ``c_med (1 + rise max(0, up - start))``, ``up = sin(elevation)``."""
+    def set_veil_rise(self, start: float, rise: Float[Tensor, "3"], end: float = 1.0) -> None:
+        """Hold the veil at ``c_med (1 + rise clamp(up - start, 0, end - start))``, ``up = sin(elevation)``."""
         with torch.no_grad():
             self.veil_rise_from.fill_(float(start))
             self.veil_rise.copy_(rise.clamp_min(0.0))
+            self.veil_rise_to.fill_(max(float(end), float(start)))
 
     def veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-        """``1 + rise max(0, d_z - start)`` for rays with these unit directions (1 below ``start``)."""
-        above = (directions[..., 2:3].float().clamp(-1.0, 1.0) - self.veil_rise_from).clamp_min(0.0)
-        return 1.0 + self.veil_rise * above
+        """``1 + rise clamp(d_z - start, 0, end - start)`` for rays with these unit directions (1 below ``start``)."""
+        up = directions[..., 2:3].float().clamp(-1.0, 1.0)
+        above = torch.minimum(up, self.veil_rise_to) - self.veil_rise_from
+        return 1.0 + self.veil_rise * above.clamp_min(0.0)
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene

@@ -92,6 +92,7 @@ class OpenWaterColour:
         self.total = torch.zeros(3, dtype=torch.float64)
         self.total_up_colour = torch.zeros(3, dtype=torch.float64)
         self.total_up = torch.zeros(2, dtype=torch.float64)  # sums of up and up^2
+        self.highest_up = -1.0
         self.open_rays = 0
         self.rays = 0
 
@@ -104,6 +105,8 @@ class OpenWaterColour:
         self.total += colour.sum(dim=0)
         self.total_up_colour += (up_open * colour).sum(dim=0)
         self.total_up += torch.stack([up_open.sum(), (up_open**2).sum()])
+        if up_open.numel():
+            self.highest_up = max(self.highest_up, float(up_open.max()))
         self.open_rays += int(colour.shape[0])
         self.rays += int(is_open.numel())
 
@@ -116,7 +119,10 @@ class OpenWaterColour:
         packed = torch.cat([self.total, self.total_up_colour, self.total_up, counts]).to(device)
         torch.distributed.all_reduce(packed)
         packed = packed.cpu()
+        highest = torch.tensor([self.highest_up], dtype=torch.float64, device=device)
+        torch.distributed.all_reduce(highest, op=torch.distributed.ReduceOp.MAX)
         pooled = OpenWaterColour()
+        pooled.highest_up = float(highest[0])
         pooled.total, pooled.total_up_colour, pooled.total_up = packed[:3], packed[3:6], packed[6:8]
         pooled.open_rays, pooled.rays = int(packed[8]), int(packed[9])
         return pooled
@@ -127,18 +133,18 @@ class OpenWaterColour:
             return None
         return self.total / self.open_rays
 
-    def rise(self) -> Optional[Tuple[float, Float[Tensor, "3"]]]:
-        """``(mean up, slope)``: the open rays' mean ``sin(elevation)`` and the least-squares slope of
-        their colour over it (per channel, colour per unit of ``up``; 0 where their elevations spread
-        by under 1e-4 in ``up``), or ``None`` where :meth:`mean` is."""
+    def rise(self) -> Optional[Tuple[float, Float[Tensor, "3"], float]]:
+        """``(mean up, slope, highest up)``: the open rays' mean ``sin(elevation)``, the least-squares
+        slope of their colour over it (per channel, colour per unit of ``up``; 0 where their elevations
+        spread by under 1e-4 in ``up``) and the highest ``up`` among them, or ``None`` where :meth:`mean` is."""
         if self.mean() is None:
             return None
         n = self.open_rays
         mean_up = float(self.total_up[0]) / n
         spread = float(self.total_up[1]) / n - mean_up**2
         if spread < 1e-8:
-            return mean_up, torch.zeros(3, dtype=torch.float64)
-        return mean_up, (self.total_up_colour / n - mean_up * self.total / n) / spread
+            return mean_up, torch.zeros(3, dtype=torch.float64), self.highest_up
+        return mean_up, (self.total_up_colour / n - mean_up * self.total / n) / spread, self.highest_up
 
 
 DARK_QUANTILE = 0.01
@@ -228,7 +234,7 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
             learned = torch.sigmoid(model.medium_field.rgb_logit.double())
             model.medium_field.rgb_logit.copy_(torch.logit(open_water).to(model.medium_field.rgb_logit))
         gain = rise[1].clamp_min(0.0) / open_water  # brighter looking up only: light falls from above
-        model.medium_field.set_veil_rise(rise[0], gain.float())
+        model.medium_field.set_veil_rise(rise[0], gain.float(), rise[2])  # not beyond the open water seen
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "

@@ -173,15 +173,16 @@ def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
         read.add(colour.expand(rays, 3), torch.ones(rays, 1), torch.full((rays, 1), (-0.1, 0.2)[local_rank]))
         alone = read.mean()
         pooled = read.pooled("cpu")
-        torch.save({"alone": alone, "pooled": pooled.mean(), "counts": (pooled.open_rays, pooled.rays)}, Path(out) / f"read{local_rank}.pt")
+        result = {"alone": alone, "pooled": pooled.mean(), "rise": pooled.rise(), "counts": (pooled.open_rays, pooled.rays)}
+        torch.save(result, Path(out) / f"read{local_rank}.pt")
     finally:
         dist.destroy_process_group()
 
 
 def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     """The veil is read from the open rays of every process (10 rays of one colour on rank 0, 30 of
-    twice it on rank 1: the ray-weighted mean 1.75 times rank 0's), so that the ranks hold one veil;
-    each rank alone would hold its own."""
+    twice it, higher up, on rank 1: the ray-weighted mean 1.75 times rank 0's, and one rise), so that
+    the ranks hold one veil; each rank alone would hold its own."""
     from seathru_nerfstudio.distributed import free_local_url
 
     mp.spawn(_read_open_water, args=(free_local_url(), str(tmp_path)), nprocs=WORLD, join=True)
@@ -190,3 +191,7 @@ def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     assert not torch.allclose(r0["alone"], r1["alone"])
     torch.testing.assert_close(r0["pooled"], water * (10 * 1 + 30 * 2) / 40, rtol=1e-6, atol=1e-7)
     assert torch.equal(r0["pooled"], r1["pooled"]) and r0["counts"] == r1["counts"] == (40, 40)
+    (up0, slope0, highest0), (up1, slope1, highest1) = r0["rise"], r1["rise"]
+    assert (up0, highest0) == (up1, highest1) and torch.equal(slope0, slope1)
+    assert up0 == pytest.approx((10 * -0.1 + 30 * 0.2) / 40) and highest0 == pytest.approx(0.2)
+    assert torch.all(slope0 > 0)  # the brighter water is the higher

@@ -183,8 +183,9 @@ def test_the_veil_becomes_the_open_water_colour_at_the_end_of_the_first_stage(ca
 
 def test_the_open_water_rise_is_the_least_squares_slope_of_its_colour_over_elevation():
     """Colours linear in ``up`` over any batches: the slope and the mean elevation are recovered
-    exactly; a level view (no spread of elevation) has no slope; the model's veil then rises
-    above the mean elevation by that slope and is the mean below it, and never falls looking up."""
+    exactly, with the highest elevation seen; a level view (no spread of elevation) has no slope; the
+    model's veil then rises above the mean elevation by that slope up to the highest, is the mean below
+    it and that value above it, and never falls looking up."""
     from seathru_nerfstudio.medium_field import SceneMedium
 
     up = torch.linspace(-0.2, 0.4, 300)[:, None]
@@ -193,18 +194,20 @@ def test_the_open_water_rise_is_the_least_squares_slope_of_its_colour_over_eleva
     estimate = OpenWaterColour()
     estimate.add(colours[:100], torch.ones(100, 1), up[:100])
     estimate.add(colours[100:], torch.ones(200, 1), up[100:])
-    mean_up, fitted = estimate.rise()
+    mean_up, fitted, highest = estimate.rise()
     assert mean_up == pytest.approx(0.1, abs=1e-6)  # float32 elevations
+    assert highest == pytest.approx(0.4, abs=1e-6)
     torch.testing.assert_close(fitted, slope.double(), rtol=1e-5, atol=1e-6)
     level = OpenWaterColour()
     level.add(colours, torch.ones(300, 1), torch.zeros(300, 1))
     assert torch.equal(level.rise()[1], torch.zeros(3, dtype=torch.float64))
 
     medium = SceneMedium(init_rgb=estimate.mean().tolist())
-    medium.set_veil_rise(mean_up, (fitted.clamp_min(0) / estimate.mean()).float())
-    directions = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, -1.0], [1.0, 0.0, 0.5], [1.0, 0.0, 1.0]]), dim=-1)
+    medium.set_veil_rise(mean_up, (fitted.clamp_min(0) / estimate.mean()).float(), highest)
+    directions = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, -1.0], [1.0, 0.0, 0.3], [1.0, 0.0, 1.0]]), dim=-1)
     veil = medium(directions).rgb.double()
-    expected = estimate.mean() + fitted.clamp_min(0) * (directions[:, 2:3].double() - mean_up).clamp_min(0)
+    seen = directions[:, 2:3].double().clamp(max=highest)  # above the highest open ray the veil stays at its value there
+    expected = estimate.mean() + fitted.clamp_min(0) * (seen - mean_up).clamp_min(0)
     torch.testing.assert_close(veil, expected, rtol=1e-5, atol=1e-6)
     assert torch.all(veil[2] >= veil[1]) and torch.all(veil[1] >= veil[0])
     assert torch.isfinite(medium(directions.half()).rgb).all()
