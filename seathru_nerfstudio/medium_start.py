@@ -13,10 +13,10 @@ colour over ``sin(elevation)`` (held too; never falls: :meth:`OpenWaterColour.ri
 :meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_rise`). Path-traced coastal water, seed 7:
 32.11 dB in the medium against 30.37 with one constant veil (docs/history.md, 2026-11-28 (eba0fe7)).
 A rise fitted to all the open rays, unlike a maximum over groups of them, is not moved by one group
-that holds object colour (the 48×36 water check's open water filled under the maximum). Learned on after entry instead, from the rays the object field leaves
-open, the veil climbs as that field fills the darker open water (path-traced coastal: blue 0.41 at
-entry, 0.61 at step 1500, best fit 0.44), and the densities fitted under it at step 500 follow it
-(docs/history.md, 2026-11-28).
+that holds object colour (the 48×36 water check's open water filled under the maximum). Learned on
+after entry instead, from the rays the object field leaves open, the veil climbs as that field fills
+the darker open water (path-traced coastal: blue 0.41 at entry, 0.61 at step 1500, best fit 0.44),
+and the densities fitted under it at step 500 follow it (docs/history.md, 2026-11-28).
 
 A surface at range ``z`` (world units) shows, per channel,
 
