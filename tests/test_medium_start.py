@@ -7,8 +7,11 @@ import pytest
 import torch
 
 from seathru_nerfstudio.medium_start import (
+    CLEAREST_QUANTILE,
+    LEAST_CLEAREST,
     OPEN_SHARE,
     OpenWaterColour,
+    is_open_water,
     apply_density_caps,
     attenuation_bounds,
     attenuation_cap,
@@ -161,6 +164,28 @@ def test_the_open_water_colour_is_the_mean_of_the_rays_the_geometry_leaves_open(
     assert sparse.mean() is None  # 0.9% open
     sparse.add(water.expand(2, 3), torch.ones(2, 1), torch.zeros(2, 1))
     torch.testing.assert_close(sparse.mean(), water.double())
+
+
+def test_open_rays_are_judged_against_the_clearest_rays_of_their_batch():
+    """A haze on every ray (all open shares scaled by 0.9) leaves the same rays open; the threshold is
+    :data:`OPEN_SHARE` of the batch's clearest ray (the 99th percentile, an actual share), so a ray just
+    above it counts and one just below does not; with no clear ray in view (every share at most 0.5)
+    nothing counts, since the clearest are taken to pass at least :data:`LEAST_CLEAREST`; an empty
+    batch has no open ray."""
+    generator = torch.Generator().manual_seed(0)
+    shares = torch.cat([torch.rand(300, generator=generator) * 0.5, 0.97 + 0.03 * torch.rand(200, generator=generator)])
+    clear = is_open_water(shares)
+    assert int(clear.sum()) == 200 and bool(clear[300:].all())
+    assert torch.equal(is_open_water(0.9 * shares), clear)
+    assert int((0.9 * shares > OPEN_SHARE).sum()) == 0  # a fixed threshold would count none of them
+    level = torch.cat([shares[:300], torch.full((200,), 0.98)])  # the clearest: 0.98 whatever is added below it
+    assert float(torch.quantile(level, CLEAREST_QUANTILE, interpolation="higher")) == pytest.approx(0.98)
+    edge = torch.cat([level, OPEN_SHARE * 0.98 + torch.tensor([1e-4, -1e-4])])
+    assert is_open_water(edge)[-2:].tolist() == [True, False]
+    closed = torch.rand(1000, generator=generator) * 0.5
+    assert not bool(is_open_water(closed).any())
+    assert int(is_open_water(torch.cat([closed, torch.full((20,), OPEN_SHARE * LEAST_CLEAREST + 1e-3)])).sum()) == 20
+    assert is_open_water(torch.zeros(0)).shape == (0,)
 
 
 def test_the_veil_becomes_the_open_water_colour_at_the_end_of_the_first_stage(capsys):

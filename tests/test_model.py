@@ -554,7 +554,7 @@ def test_the_first_stage_reads_the_open_water_in_its_second_half_and_the_veil_is
     model = tiny_model(metadata=depths, medium_scope="scene", medium_first_steps=6, average_init_density=0.01)
     bare = tiny_model(medium_scope="scene", medium_first_steps=6)
     model.train(), bare.train()
-    from seathru_nerfstudio.medium_start import OPEN_SHARE
+    from seathru_nerfstudio.medium_start import is_open_water
 
     image = torch.rand(16, 3)
     expected_open, expected_total = 0, torch.zeros(3, dtype=torch.float64)
@@ -566,8 +566,8 @@ def test_the_first_stage_reads_the_open_water_in_its_second_half_and_the_veil_is
         assert (model.open_water_colour.rays > 0) == (step >= 3), step
         if step >= 3:  # T past the last sample, from the geometry's own outputs
             past = out["transmittance"][..., -1, 0] - out["weights_list"][-1][..., -1, 0]
-            expected_open += int((past > OPEN_SHARE).sum())
-            expected_total += image[past > OPEN_SHARE].double().sum(dim=0)
+            expected_open += int(is_open_water(past).sum())
+            expected_total += image[is_open_water(past)].double().sum(dim=0)
     assert (model.open_water_colour.rays, model.open_water_colour.open_rays) == (32, expected_open)
     torch.testing.assert_close(model.open_water_colour.total, expected_total)
     for m, held in ((model, True), (bare, False)):
