@@ -17,6 +17,11 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
 * ``fit``: where the medium fit ran, the standard error of ``ln beta_D`` per channel and, to
   first order (``SE(beta) = beta SE(ln beta)``), of ``beta_D`` in 1/world unit, and which
   densities are held at their fit.
+* ``B_inf_rise`` (scene medium, where the open water was read brighter looking up): the veil of a
+  ray whose unit direction has scene-frame ``+z`` component ``u`` is
+  ``B_inf (1 + gain (min(u, up_to_sin_elevation) - above_sin_elevation))`` above
+  ``above_sin_elevation``, and ``B_inf`` below it; ``B_inf_highest`` is its value at the top.
+  ``B_inf`` itself is the veil looking down, the one the surfaces are seen through.
 * ``medium_scope ray`` (the medium is an MLP of the ray direction): ``directions``, a table of
   the medium over a grid of view directions in the scene frame (nerfstudio's oriented frame,
   ``+z`` up); the top-level values are then its mean over the training cameras' optical axes
@@ -123,6 +128,22 @@ def _fit(model: Any, beta_d: Tensor) -> Optional[Dict[str, Any]]:
     return fit
 
 
+def _veil_rise(model: Any) -> Optional[Dict[str, Any]]:
+    """The scene medium's rise of the veil looking up (module docstring), or ``None`` where it has none."""
+    field = getattr(model, "medium_field", None)
+    gain = getattr(field, "veil_rise", None)
+    if gain is None or not bool((gain > 0).any()):
+        return None
+    start, end = float(field.veil_rise_from), float(field.veil_rise_to)
+    top = torch.tensor([[math.sqrt(max(0.0, 1.0 - end * end)), 0.0, end]])  # a unit direction at the highest elevation
+    return {
+        "above_sin_elevation": start,
+        "up_to_sin_elevation": end,
+        "gain": _numbers(gain.detach().double().cpu()),
+        "B_inf_highest": _numbers(_per_world(model, top)["B_inf"][0]),
+    }
+
+
 def medium_report(
     model: Any,
     unit: str = UNKNOWN_UNIT,
@@ -161,6 +182,9 @@ def medium_report(
     report["B_inf"] = _numbers(values["B_inf"])
     report["attenuation_length"] = [1.0 / b if b > 0 else None for b in report["beta_D"]]
     report["fit"] = _fit(model, values["beta_D"])
+    rise = _veil_rise(model) if scope == "scene" else None
+    if rise is not None:
+        report["B_inf_rise"] = rise
     report["summary"] = summary_line(report)
     return report
 
@@ -177,6 +201,8 @@ def summary_line(report: Dict[str, Any]) -> str:
         f"medium {chosen}{step}: beta_D {show(report['beta_D'])} {per}, beta_B {show(report['beta_B'])} {per}, "
         f"B_inf {show(report['B_inf'])} (linear RGB)"
     )
+    if report.get("B_inf_rise"):
+        line += f", B_inf looking up to {show(report['B_inf_rise']['B_inf_highest'])}"
     if report["medium_scope"] == "ray":
         line += f", mean over {report['average_over']}"
     fit = report.get("fit")
