@@ -46,7 +46,7 @@ class ResearchConfig(PrintableConfig):
     auto_evidence_steps: int = 50
     """``auto``: the evidence is the mean over this many steps before the decision."""
     auto_blend_steps: int = 200
-    """``auto``: steps over which the medium moves to the chosen model, the object density held."""
+    """Steps over which the medium moves to ``auto``'s choice (the object density held) and the held densities to the medium fit."""
     auto_rule: ChoiceRule = field(default_factory=ChoiceRule)
     """``auto``: thresholds of the decision (:mod:`seathru_nerfstudio.medium_choice`)."""
     medium_fit_max_log_error: float = 0.35

@@ -18,7 +18,8 @@ The timeline of a medium model (defaults in brackets)::
 * ``research.auto_decision_step`` (500, ``auto`` only): the simplest medium model the evidence of
   the last ``research.auto_evidence_steps`` allows (:mod:`seathru_nerfstudio.medium_choice`).
 * ``medium_fit_step`` (500, after the decision): the densities are fitted to the SfM observations
-  under the veiling light learned so far (:mod:`seathru_nerfstudio.medium_fit`) and held from then on.
+  under the veiling light learned so far (:mod:`seathru_nerfstudio.medium_fit`) and held from then on,
+  moving from their trained values to the fit over ``research.auto_blend_steps``.
   Up to this step the binary prior has its strong early weight (the open water stays empty while
   the veiling light is read), afterwards the paper's λ.
 * ``research.auto_blend_steps`` (200): after a decision other than ``seathru`` or ``none``, the

@@ -825,8 +825,9 @@ def test_a_fit_of_the_same_inputs_is_computed_once():
 
 
 def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(capsys):
-    """At ``medium_fit_step`` the scene medium's densities (per scene unit) become the fit (per metre)
-    divided by the scale; before that step nothing changes; a ray medium is left alone."""
+    """At ``medium_fit_step`` the scene medium's densities (per scene unit) are held and move to the fit
+    (per metre, divided by the scale) over ``auto_blend_steps``; before that step nothing changes; a
+    ray medium is left alone."""
     from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
     from seathru_nerfstudio.data.sfm_observations import SfmObservations
     from seathru_nerfstudio.medium_fit import fit_model_medium
@@ -836,15 +837,25 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
     colour = rng.uniform(0.1, 1.0, (200, 1, 3))
     table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))  # colours set below, under the model's veil
-    m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5)
+    m = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, auto_blend_steps=4)
     veil = torch.sigmoid(m.medium_field.rgb_logit.detach().double()).numpy()
     table.colours[...] = colour * np.exp(-beta_d * ranges[..., None]) + veil * -np.expm1(-beta_b * ranges[..., None])
     before = m.medium_field.density_raw.detach().clone()
     apply_medium_fit(m, 5)
     torch.testing.assert_close(m.medium_field.density_raw.detach(), before)
     apply_medium_fit(m, 9)
+    # held from the fit on, the densities move to it in log space over auto_blend_steps (4 here)
+    torch.testing.assert_close(m.medium_field.density_raw.detach(), before)
+    assert m.densities_fitted.all()
+    start = torch.nn.functional.softplus(before.double())
+    apply_medium_fit(m, 11)  # half way: the geometric mean of the start and the fit
+    halfway = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
+    torch.testing.assert_close(halfway, torch.sqrt(start * torch.tensor([*beta_d, *beta_b]) / 2.0), rtol=0.01, atol=0)
+    apply_medium_fit(m, 13)
     sigma = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
     torch.testing.assert_close(sigma * 2.0, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
+    apply_medium_fit(m, 14)  # the ramp is over: nothing moves
+    assert torch.equal(torch.nn.functional.softplus(m.medium_field.density_raw.detach().double()), sigma)
     # a channel whose fit error exceeds the bound keeps its trained densities however far they lie
     # from the fit (noisy colours give errors of 0.2-0.6 in ln beta_D here); the others are replaced
     noisy = SfmObservations(ranges=ranges, colours=table.colours + rng.normal(0.0, 0.02, table.colours.shape))
@@ -860,6 +871,7 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     strict.medium_field.set_densities(trained)
     kept = strict.medium_field.density_raw.detach().clone()
     apply_medium_fit(strict, 9)
+    apply_medium_fit(strict, 9 + strict.config.research.auto_blend_steps)  # to the end of the ramp
     assert strict.densities_fitted.tolist() == [*precise.tolist(), *precise.tolist()]
     imprecise = torch.cat([~precise, ~precise])
     torch.testing.assert_close(strict.medium_field.density_raw.detach()[imprecise], kept[imprecise])  # these train on
@@ -878,6 +890,7 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     capsys.readouterr()
     apply_medium_fit(fog, 9)
     assert "(fog tie)" in capsys.readouterr().out  # the log names the tie it fitted
+    apply_medium_fit(fog, 9 + fog.config.research.auto_blend_steps)
     fog_sigma = torch.nn.functional.softplus(fog.medium_field.density_raw.detach().double())
     torch.testing.assert_close(fog_sigma[:3], fog_sigma[:1].expand(3), rtol=1e-6, atol=0)  # one grey attenuation
     torch.testing.assert_close(fog_sigma[3:], fog_sigma[3:4].expand(3), rtol=1e-6, atol=0)  # one grey backscatter
@@ -914,6 +927,7 @@ def test_the_fit_oracle_puts_the_chosen_true_densities_in_place_of_the_fit_and_h
         -beta_b * ranges[..., None]
     )
     apply_medium_fit(m, 9)
+    apply_medium_fit(m, 9 + m.config.research.auto_blend_steps)  # the end of the ramp to them
     per_metre = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double()) * 2.0
     expected_d = truth["beta_D"] if parts != "backscatter" else beta_d
     expected_b = truth["beta_B"] if parts != "attenuation" else beta_b

@@ -135,10 +135,14 @@ DECOMPOSITION_FIT_STEP = 150
 veiling light has settled: fitted at step 60 (blue B∞ still 15% low) the clean image ended at
 14.8 dB, at 150 at 16.2 dB, with the defaults' excess term and without the fit 11.3 (2026-11-26,
 f139320). The prior's strong early weight lasts to the fit."""
+DECOMPOSITION_BLEND_STEPS = 50
+"""The densities' move to the fit (and ``auto``'s blend), 200 by default, shortened with the rest: it
+ends at step 200, a hundred steps before the check's end."""
 DECOMPOSITION_BENCH = [
     "--scenes", "water", "--methods",
     f"seathru-nerf-lite:medium_first_steps={DECOMPOSITION_FIRST_STAGE},medium_fit_step={DECOMPOSITION_FIT_STEP},"
-    f"pipeline.model.research.auto_decision_step={DECOMPOSITION_FIT_STEP}",
+    f"pipeline.model.research.auto_decision_step={DECOMPOSITION_FIT_STEP},"
+    f"pipeline.model.research.auto_blend_steps={DECOMPOSITION_BLEND_STEPS}",
     "--budget-iterations", str(DECOMPOSITION_ITERATIONS), "--num-evals", "2",
     "--first-eval-fraction", str((DECOMPOSITION_FIRST_STAGE + 10) / DECOMPOSITION_ITERATIONS),
     "--width", "48", "--height", "36", "--num-views", "10", "--threads", "1",
