@@ -198,6 +198,10 @@ class SceneMedium(nn.Module):
         """The veil's rise over ``c_med`` per unit of ``sin(elevation)`` above :attr:`veil_rise_from` (per channel, >= 0)."""
         self.register_buffer("veil_rise_to", torch.tensor(1.0))
         """Where the rise ends (``sin`` of the elevation): above it the veil stays at its value there."""
+        self.register_buffer("fit_from", torch.zeros(6))
+        """The densities before the medium fit and (:attr:`fit_to`) the fit, per scene unit, between which
+        :meth:`move_to_fit` moves them (zeros: no fit yet); in checkpoints, so a resumed run moves alike."""
+        self.register_buffer("fit_to", torch.zeros(6))
 
     def set_veil_rise(self, start: float, rise: Float[Tensor, "3"], end: float = 1.0) -> None:
         """Hold the veil at ``c_med (1 + rise clamp(up - start, 0, end - start))``, ``up = sin(elevation)``."""
@@ -218,6 +222,22 @@ class SceneMedium(nn.Module):
         values = [inverse_softplus(float(d)) for d in densities]
         with torch.no_grad():
             self.density_raw[first : first + len(values)].copy_(torch.tensor(values, dtype=self.density_raw.dtype))
+
+    def start_move_to_fit(self, fitted: Float[Tensor, "6"]) -> None:
+        """Record the densities now and ``fitted`` (per scene unit, > 0) as the ends of :meth:`move_to_fit`."""
+        with torch.no_grad():
+            self.fit_from.copy_(nn.functional.softplus(self.density_raw.double()).float())
+            self.fit_to.copy_(fitted.float())
+
+    def move_to_fit(self, share: float, held: Tensor) -> None:
+        """Set the ``held`` densities (six booleans) to ``from^(1 - share) · to^share`` (log space; ``share``
+        in [0, 1]); the others keep what they learned; nothing before a fit."""
+        if not bool((self.fit_from > 0).all() and (self.fit_to > 0).all()):
+            return
+        share = min(max(float(share), 0.0), 1.0)
+        moved = torch.exp(torch.lerp(self.fit_from.double().log(), self.fit_to.double().log(), share))
+        now = nn.functional.softplus(self.density_raw.detach().double())
+        self.set_densities(torch.where(held.to(moved.device).bool(), moved, now))
 
     def density_parameters(self) -> list:
         """The attenuation and backscatter densities: weakly determined by the images, so they

@@ -393,18 +393,16 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     :func:`fit_densities` on the dataparser's SfM observation table, under the veiling light learned
     so far, tied as the medium model in use renders them, and hold them from then on
     (``model.densities_fitted``), moving from the trained values to the fit in log space over
-    ``research.auto_blend_steps`` (``model.density_ramp``): set at once, the fit's change of the image
+    ``research.auto_blend_steps`` (:meth:`~seathru_nerfstudio.medium_field.SceneMedium.move_to_fit`): set at once, the fit's change of the image
     emptied the object field within 15 steps on path-traced coastal water (opacity 0.65 → 0.14–0.19 on
     three runs of seed 42, depth error 0.1 → 0.9–1.5; none with the ramp; docs/history.md, 2026-11-29). A channel the fit is uncertain about (standard error of ``ln β_D``
     above ``research.medium_fit_max_log_error``; :func:`fit_replaces`) keeps its trained densities
     and trains on.
     ``optimizers``: the trainer's, whose ``medium_density`` Adam state is cleared."""
     config = model.config
-    ramp = getattr(model, "density_ramp", None)
-    if ramp is not None and step > ramp[0]:  # the held densities move to the fit, in log space
-        share = min(1.0, (step - ramp[0]) / max(config.research.auto_blend_steps, 1))
-        model.medium_field.set_densities(torch.exp(torch.lerp(ramp[1].log(), ramp[2].log(), share)))
-        model.density_ramp = None if share >= 1.0 else ramp
+    after_fit = step - (config.medium_fit_step or 0) + 1  # 0 at the fit's own step (its last, 499)
+    if model.fits_medium and 0 < after_fit <= config.research.auto_blend_steps:  # the held densities move to the fit
+        model.medium_field.move_to_fit(after_fit / max(config.research.auto_blend_steps, 1), model.densities_fitted.cpu())
     if not (model.fits_medium and TrainingPhases(config, step).ends(config.medium_fit_step)):
         return
     table = sfm_observation_table(model)
@@ -437,7 +435,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
         beta_d, beta_b, replaced = replace_with_truth(model.fit_oracle, parts, beta_d, beta_b, ~uncertain)
         CONSOLE.print(f"[bold]seathru step {step}: medium_fit_oracle: the true densities ({parts}) replace the fit")
     fitted = torch.cat([beta_d, beta_b]) / model.world_scale
-    model.density_ramp = (step, densities / model.world_scale, fitted)  # reached after auto_blend_steps
+    medium.start_move_to_fit(fitted)  # reached after auto_blend_steps
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
     model.densities_fitted.copy_(replaced.to(model.densities_fitted.device))

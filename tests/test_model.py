@@ -851,6 +851,10 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     apply_medium_fit(m, 11)  # half way: the geometric mean of the start and the fit
     halfway = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
     torch.testing.assert_close(halfway, torch.sqrt(start * torch.tensor([*beta_d, *beta_b]) / 2.0), rtol=0.01, atol=0)
+    resumed = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, auto_blend_steps=4)
+    resumed.load_state_dict(m.state_dict())  # a checkpoint half way moves on alike
+    apply_medium_fit(m, 12), apply_medium_fit(resumed, 12)
+    assert torch.equal(resumed.medium_field.density_raw.detach(), m.medium_field.density_raw.detach())
     apply_medium_fit(m, 13)
     sigma = torch.nn.functional.softplus(m.medium_field.density_raw.detach().double())
     torch.testing.assert_close(sigma * 2.0, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
