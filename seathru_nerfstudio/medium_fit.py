@@ -393,11 +393,12 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     :func:`fit_densities` on the dataparser's SfM observation table, under the veiling light learned
     so far, tied as the medium model in use renders them, and hold them from then on
     (``model.densities_fitted``), moving from the trained values to the fit in log space over
-    ``research.auto_blend_steps`` (:meth:`~seathru_nerfstudio.medium_field.SceneMedium.move_to_fit`): set at once, the fit's change of the image
-    emptied the object field within 15 steps on path-traced coastal water (opacity 0.65 → 0.14–0.19 on
-    three runs of seed 42, depth error 0.1 → 0.9–1.5; none with the ramp; docs/history.md, 2026-11-29). A channel the fit is uncertain about (standard error of ``ln β_D``
-    above ``research.medium_fit_max_log_error``; :func:`fit_replaces`) keeps its trained densities
-    and trains on.
+    ``research.auto_blend_steps`` (:meth:`~seathru_nerfstudio.medium_field.SceneMedium.move_to_fit`).
+    Set at once, the fit's change of the image emptied the object field within 15 steps on
+    path-traced coastal water (opacity 0.65 → 0.14–0.19 on three runs of seed 42, depth error 0.1 →
+    0.9–1.5; 0.63 with the move; docs/history.md, 2026-11-29). A channel the fit is uncertain about
+    (standard error of ``ln β_D`` above ``research.medium_fit_max_log_error``; :func:`fit_replaces`)
+    keeps its trained densities and trains on.
     ``optimizers``: the trainer's, whose ``medium_density`` Adam state is cleared."""
     config = model.config
     after_fit = step - (config.medium_fit_step or 0) + 1  # 0 at the fit's own step (its last, 499)
