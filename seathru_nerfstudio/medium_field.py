@@ -170,6 +170,12 @@ def _expand(values: Tensor, directions: Tensor) -> Tensor:
     return values.to(directions.device).expand(*directions.shape[:-1], 3)
 
 
+def sin_elevation(directions: Float[Tensor, "*batch 3"], vertical: Float[Tensor, "3"]) -> Float[Tensor, "*batch 1"]:
+    """``sin`` of the elevation of unit ``directions`` above the level plane: ``direction · vertical``
+    (``vertical``: the scene's unit up), clamped to [-1, 1]."""
+    return (directions.float() @ vertical.to(directions.device).float()).unsqueeze(-1).clamp(-1.0, 1.0)
+
+
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
     learned constants (sigmoid and softplus, as the MLP's heads). The densities are the same for
@@ -192,8 +198,11 @@ class SceneMedium(nn.Module):
         densities = torch.as_tensor(init_density, dtype=torch.float64).expand(6)
         self.density_raw = nn.Parameter(torch.zeros(6))
         self.set_densities(densities)
+        self.register_buffer("vertical", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
+        """The unit up of the scene frame for the elevation (:func:`~seathru_nerfstudio.vertical.scene_vertical`;
+        set from the data at every start, so not in checkpoints)."""
         self.register_buffer("veil_rise_from", torch.tensor(1.0))
-        """Where the veil starts to rise: ``sin`` of the elevation (world +z, the cameras' mean up)."""
+        """Where the veil starts to rise: ``sin`` of the elevation (``direction · vertical``)."""
         self.register_buffer("veil_rise", torch.zeros(3))
         """The veil's rise over ``c_med`` per unit of ``sin(elevation)`` above :attr:`veil_rise_from` (per channel, >= 0)."""
         self.register_buffer("veil_rise_to", torch.tensor(1.0))
@@ -210,9 +219,16 @@ class SceneMedium(nn.Module):
             self.veil_rise.copy_(rise.clamp_min(0.0))
             self.veil_rise_to.fill_(max(float(end), float(start)))
 
+    def set_vertical(self, vertical: Sequence[float] | Tensor) -> None:
+        """The scene frame's up (three numbers, normalised here) along which the elevation is measured."""
+        values = torch.as_tensor(vertical, dtype=torch.float64).reshape(3)
+        with torch.no_grad():
+            self.vertical.copy_(values / values.norm())
+
     def veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-        """``1 + rise clamp(d_z - start, 0, end - start)`` for rays with these unit directions (1 below ``start``)."""
-        up = directions[..., 2:3].float().clamp(-1.0, 1.0)
+        """``1 + rise clamp(up - start, 0, end - start)`` for rays with these unit directions, ``up`` their
+        :meth:`elevation` (1 below ``start``)."""
+        up = sin_elevation(directions, self.vertical)
         above = torch.minimum(up, self.veil_rise_to) - self.veil_rise_from
         return 1.0 + self.veil_rise * above.clamp_min(0.0)
 

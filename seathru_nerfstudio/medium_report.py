@@ -18,7 +18,8 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   first order (``SE(beta) = beta SE(ln beta)``), of ``beta_D`` in 1/world unit, and which
   densities are held at their fit.
 * ``B_inf_rise`` (scene medium, where the open water was read brighter looking up): the veil of a
-  ray whose unit direction has scene-frame ``+z`` component ``u`` is
+  ray whose unit direction has component ``u`` along ``vertical`` (the scene frame's up, from the
+  training cameras: :mod:`~seathru_nerfstudio.vertical`) is
   ``B_inf (1 + gain (min(u, up_to_sin_elevation) - above_sin_elevation))`` above
   ``above_sin_elevation``, and ``B_inf`` below it; ``B_inf_highest`` is its value at the top.
   ``B_inf`` itself is the veil looking down, the one the surfaces are seen through.
@@ -44,6 +45,8 @@ from typing import Any, Dict, Iterator, List, Optional
 import torch
 from jaxtyping import Float
 from torch import Tensor
+
+from seathru_nerfstudio.vertical import level_direction
 
 REPORT_NAME = "medium.json"
 """The file's name, beside ``config.yml``."""
@@ -135,12 +138,14 @@ def _veil_rise(model: Any) -> Optional[Dict[str, Any]]:
     if gain is None or not bool((gain > 0).any()):
         return None
     start, end = float(field.veil_rise_from), float(field.veil_rise_to)
-    top = torch.tensor([[math.sqrt(max(0.0, 1.0 - end * end)), 0.0, end]])  # a unit direction at the highest elevation
+    vertical = field.vertical.detach().double().cpu()
+    top = math.sqrt(max(0.0, 1.0 - end * end)) * level_direction(vertical) + end * vertical  # at the highest elevation
     return {
+        "vertical": _numbers(vertical),
         "above_sin_elevation": start,
         "up_to_sin_elevation": end,
         "gain": _numbers(gain.detach().double().cpu()),
-        "B_inf_highest": _numbers(_per_world(model, top)["B_inf"][0]),
+        "B_inf_highest": _numbers(_per_world(model, top[None].float())["B_inf"][0]),
     }
 
 

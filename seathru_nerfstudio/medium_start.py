@@ -109,7 +109,7 @@ def is_open_water(open_share: Float[Tensor, "N"]) -> Bool[Tensor, "N"]:
 
 class OpenWaterColour:
     """The colour of the training rays the first stage's geometry leaves open, and how it changes
-    with their elevation ``up = sin(elevation)`` (world +z, nerfstudio's "up" orientation): the
+    with their elevation ``up = sin(elevation)`` (along the scene's vertical, :mod:`~seathru_nerfstudio.vertical`): the
     sums of a least-squares line."""
 
     def __init__(self) -> None:
@@ -122,7 +122,7 @@ class OpenWaterColour:
 
     def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"], up: Float[Tensor, "N 1"]) -> None:
         """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past
-        the last sample, ``up`` the unit ray direction's world +z."""
+        the last sample, ``up`` the ``sin`` of the rays' elevations."""
         is_open = is_open_water(open_share.detach()[..., 0])
         colour = colours.detach()[is_open].double().cpu()
         up_open = up.detach()[is_open].double().clamp(-1.0, 1.0).cpu()

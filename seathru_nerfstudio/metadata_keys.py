@@ -10,3 +10,5 @@ EXTENT_KEY = "frustum_extent"
 """The largest ``|x|∞`` (scene units) of the split's view frustums cut at the far bound
 (:func:`~seathru_nerfstudio.data.nerfstudio_data.frustum_extent`), where the model's scene
 contraction starts."""
+VERTICAL_KEY = "scene_vertical"
+"""The scene frame's unit vertical from the split's cameras (:func:`~seathru_nerfstudio.vertical.scene_vertical`), three floats."""

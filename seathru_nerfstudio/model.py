@@ -37,18 +37,11 @@ from seathru_nerfstudio.losses import (
     sfm_depth_loss,
 )
 from seathru_nerfstudio.medium_choice import UNDECIDED, AutoMediumChoice
-from seathru_nerfstudio.medium_field import (
-    MEDIUM_MODELS,
-    MediumField,
-    MediumOutputs,
-    SceneMedium,
-    blend_media,
-    clear_medium,
-    tie,
-)
+from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumField, MediumOutputs, SceneMedium, blend_media, clear_medium
+from seathru_nerfstudio.medium_field import sin_elevation, tie
 from seathru_nerfstudio.medium_start import OpenWaterColour, apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
-from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY
+from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY, VERTICAL_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
 from seathru_nerfstudio.object_field import FixedDirectionEncoding, scene_collider, scene_contraction_radius, set_contraction
 from seathru_nerfstudio.oracles import oracle_medium, read_true_medium
@@ -81,6 +74,8 @@ class SeathruModel(NerfactoModel):
                 "positive (do all cameras sit at one point?)"
             )
         self.fit_oracle = read_true_medium(research.medium_fit_oracle) if research.medium_fit_oracle else None
+        self.register_buffer("vertical", torch.tensor(metadata.get(VERTICAL_KEY, (0.0, 0.0, 1.0))).float(), persistent=False)
+        """The scene frame's unit up (:func:`~seathru_nerfstudio.vertical.scene_vertical`): elevations are measured along it."""
         self.medium_field = self._build_medium(metadata)
         self.open_water_colour = OpenWaterColour()  # the first stage's open rays: the veil from its end on
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
@@ -132,7 +127,9 @@ class SeathruModel(NerfactoModel):
             from_range = self.config.medium_init_optical_depth / (spread.mean_range * self.world_scale)
             density = from_range if math.isfinite(from_range) else density  # a subnormal range would give inf
         if self.config.medium_scope == "scene":
-            return SceneMedium(init_density=density)
+            scene_medium = SceneMedium(init_density=density)
+            scene_medium.set_vertical(self.vertical)
+            return scene_medium
         return MediumField(
             num_layers=self.config.medium_num_layers,
             hidden_dim=self.config.medium_hidden_dim,
@@ -325,7 +322,7 @@ class SeathruModel(NerfactoModel):
             outputs["weights_list"] = weights_list
             outputs["ray_samples_list"] = ray_samples_list
             outputs["transmittance"] = render.transmittance if geometry is None else geometry[1]
-            outputs["direction_up"] = ray_bundle.directions[..., 2:3]  # world +z: the cameras' mean up (nerfstudio's "up" orientation)
+            outputs["direction_up"] = sin_elevation(ray_bundle.directions, self.vertical)
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
             if envelope is not None:

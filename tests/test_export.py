@@ -445,6 +445,10 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     assert rise["B_inf_rise"]["up_to_sin_elevation"] == pytest.approx(0.3)
     expected = (down * (1 + torch.tensor([0.0, 0.5, 2.0], dtype=torch.float64) * (0.3 - 0.1))).clamp(max=1.0)
     assert rise["B_inf_rise"]["B_inf_highest"] == pytest.approx(expected.tolist(), rel=1e-5)
+    assert rise["B_inf_rise"]["vertical"] == pytest.approx([0.0, 0.0, 1.0])
+    water.medium_field.set_vertical([0.0, 0.6, 0.8])  # elevations along a tilted up: the same veil at its top
+    tilted = medium_report.medium_report(water)["B_inf_rise"]
+    assert tilted["vertical"] == pytest.approx([0.0, 0.6, 0.8]) and tilted["B_inf_highest"] == pytest.approx(expected.tolist(), rel=1e-5)
     assert "B_inf looking up to" in rise["summary"]
 
     ray = tiny_model(medium_model="seathru", medium_scope="ray").eval()

@@ -82,11 +82,14 @@ def test_sparse_depth_images_reach_the_batch_in_scene_units(tmp_path):
 
     from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, SeathruNerfstudioDataParserConfig
     from seathru_nerfstudio.data.synthetic import SynthConfig, generate
+    from seathru_nerfstudio.metadata_keys import VERTICAL_KEY
 
     scene = generate(SynthConfig(output_dir=tmp_path / "s", width=24, height=16, num_views=3, sfm_points_per_view=20))
     outputs = SeathruNerfstudioDataParserConfig(data=scene).setup().get_dataparser_outputs("train")
     scale = float(outputs.dataparser_scale)
     assert outputs.metadata[SCALE_KEY] == scale
+    vertical = torch.tensor(outputs.metadata[VERTICAL_KEY], dtype=torch.float64)  # the cameras' up, made unit
+    assert float(vertical.norm()) == pytest.approx(1.0) and float(vertical @ outputs.cameras.camera_to_worlds[:, :3, 1].double().mean(0)) > 0
     item = LinearImageDataset(outputs)[0]
     stored = cv2.imread(str(outputs.metadata["depth_filenames"][0]), cv2.IMREAD_ANYDEPTH)
     assert item["depth_image"].shape == (16, 24, 1)

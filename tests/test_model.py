@@ -962,3 +962,17 @@ def test_the_fit_oracle_puts_the_chosen_true_densities_in_place_of_the_fit_and_h
 def test_settings_that_cannot_train_are_refused_naming_the_option(settings, option):
     with pytest.raises(ValueError, match=option):
         tiny_model(**settings)
+
+
+def test_the_model_measures_elevations_along_the_datas_vertical():
+    """The dataparser's vertical reaches the scene medium and the open-water sums' ``direction_up``."""
+    from seathru_nerfstudio.metadata_keys import VERTICAL_KEY
+
+    tilted = tiny_model(metadata={VERTICAL_KEY: [0.0, 0.6, 0.8]}).train()
+    bundle = rays(32)
+    out = tilted(bundle)
+    expected = bundle.directions @ torch.tensor([0.0, 0.6, 0.8])
+    assert torch.allclose(tilted.medium_field.vertical, torch.tensor([0.0, 0.6, 0.8]))
+    assert torch.allclose(out["direction_up"][..., 0], expected, atol=1e-6)
+    plain = tiny_model().train()  # no vertical in the metadata: scene +z, nerfstudio's "up"
+    assert torch.allclose(plain(bundle)["direction_up"][..., 0], bundle.directions[..., 2], atol=1e-6)

@@ -43,7 +43,8 @@ from seathru_nerfstudio.data.linear_images import read_linear_image
 from seathru_nerfstudio.data.range_diversity import RangeSpread, range_spread
 from seathru_nerfstudio.data.sfm_observations import SfmObservations, sfm_observations
 from seathru_nerfstudio.input_errors import InputError
-from seathru_nerfstudio.metadata_keys import EXTENT_KEY, RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY
+from seathru_nerfstudio.metadata_keys import EXTENT_KEY, RANGE_SPREAD_KEY, SCALE_KEY, SFM_OBSERVATIONS_KEY, VERTICAL_KEY
+from seathru_nerfstudio.vertical import scene_vertical
 
 NEAR_PERCENTILE = 0.1
 """Per image, the near bound is this percentile of its SfM depths (LLFF's choice), so that a
@@ -75,6 +76,7 @@ class SeathruNerfstudio(Nerfstudio):
         outputs.metadata.update(self._ground_truth([Path(p) for p in outputs.image_filenames]))
         scale = float(outputs.dataparser_scale)
         outputs.metadata[SCALE_KEY] = scale
+        outputs.metadata[VERTICAL_KEY] = scene_vertical(outputs.cameras.camera_to_worlds).tolist()
         if not outputs.metadata.get("depth_filenames"):
             transforms = self.config.data if self.config.data.suffix == ".json" else self.config.data / "transforms.json"
             depths_from_colmap(outputs, transforms.parent)

@@ -40,6 +40,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.data.input_checks import check_images
 from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY, SCALE_KEY, add_sfm_metadata, depths_from_colmap, frustum_extent
 from seathru_nerfstudio.input_errors import InputError
+from seathru_nerfstudio.metadata_keys import VERTICAL_KEY
+from seathru_nerfstudio.vertical import scene_vertical
 
 IMAGE_FOLDER_CANDIDATES = (Path("images_wb"), Path("Images_wb"), Path("images"))
 IMAGE_SUFFIXES = frozenset({".png", ".tif", ".tiff", ".jpg", ".jpeg", ".exr"})
@@ -204,6 +206,7 @@ class SeathruDataParser(ColmapDataParser):
         outputs.metadata["far_plane"] = float(near_far[:, 1].max() * scale)
         outputs.metadata[EXTENT_KEY] = frustum_extent(outputs.cameras, outputs.metadata["far_plane"])
         outputs.metadata[SCALE_KEY] = scale
+        outputs.metadata[VERTICAL_KEY] = scene_vertical(outputs.cameras.camera_to_worlds).tolist()
         if not outputs.metadata.get("depth_filenames"):  # the model's tracks, as seathru-process-data gives them
             depths_from_colmap(outputs, self.config.data / self.config.colmap_path)
         add_sfm_metadata(outputs, split, self.config.sfm_observations, bounds=False)  # near/far: poses_bounds.npy
