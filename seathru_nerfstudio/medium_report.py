@@ -24,8 +24,8 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   ``above_sin_elevation``, and ``B_inf`` below it; ``B_inf_highest`` is its value at the top.
   ``B_inf`` itself is the veil looking down, the one the surfaces are seen through.
 * ``medium_scope ray`` (the medium is an MLP of the ray direction): ``directions``, a table of
-  the medium over a grid of view directions in the scene frame (nerfstudio's oriented frame,
-  ``+z`` up); the top-level values are then its mean over the training cameras' optical axes
+  the medium over a grid of view directions in the scene frame, elevations measured along
+  ``vertical`` as above; the top-level values are then its mean over the training cameras' optical axes
   (or over the table's directions when no cameras are given).
 
 The keys ``beta_D``, ``beta_B`` and ``B_inf`` (1/m) are those of ``seathru-synth``'s true
@@ -73,15 +73,19 @@ def world_unit(data: Optional[Path]) -> str:
     return UNKNOWN_UNIT
 
 
-def direction_grid() -> Float[Tensor, "n 3"]:
-    """Unit directions at :data:`ELEVATIONS_DEG` x :data:`AZIMUTHS_DEG` (one at each pole),
-    in the scene frame: elevation above the ``x-y`` plane, azimuth from ``+x`` towards ``+y``."""
+def direction_grid(vertical: Optional[Float[Tensor, "3"]] = None) -> Float[Tensor, "n 3"]:
+    """Unit directions at :data:`ELEVATIONS_DEG` x :data:`AZIMUTHS_DEG` (one at each pole), in the
+    scene frame: elevation above the plane level to ``vertical`` (the scene's unit up; default
+    ``+z``), azimuth from :func:`~seathru_nerfstudio.vertical.level_direction` towards ``vertical × it``."""
+    up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if vertical is None else vertical.detach().double().cpu()
+    first = level_direction(up)
+    frame = torch.stack([first, torch.linalg.cross(up, first), up], dim=1)  # columns: the level axes, then up
     rows = []
     for elevation in ELEVATIONS_DEG:
         for azimuth in AZIMUTHS_DEG if abs(elevation) < 90 else (0,):
             e, a = math.radians(elevation), math.radians(azimuth)
             rows.append([math.cos(e) * math.cos(a), math.cos(e) * math.sin(a), math.sin(e)])
-    return torch.tensor(rows, dtype=torch.float32)
+    return (torch.tensor(rows, dtype=torch.float64) @ frame.T).float()
 
 
 @contextlib.contextmanager
@@ -171,7 +175,7 @@ def medium_report(
         "dataparser_scale": float(model.world_scale),
     }
     if scope == "ray":
-        grid = direction_grid()
+        grid = direction_grid(getattr(model, "vertical", None))
         table = _per_world(model, grid)
         average = _per_world(model, view_directions) if view_directions is not None else table
         report["average_over"] = "training cameras' optical axes" if view_directions is not None else "the table's directions"

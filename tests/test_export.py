@@ -455,6 +455,10 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     report = medium_report.medium_report(ray, view_directions=torch.tensor([[0.0, 0.0, -1.0]]))
     grid = medium_report.direction_grid()
     assert len(report["directions"]) == len(grid) and torch.allclose(grid.norm(dim=-1), torch.ones(len(grid)))
+    tilted_up = torch.tensor([0.0, 0.6, 0.8])
+    tilted_grid = medium_report.direction_grid(tilted_up)  # the same table about another up: elevations along it
+    assert torch.allclose(tilted_grid @ tilted_up, grid[:, 2], atol=1e-6)
+    assert torch.allclose(tilted_grid @ tilted_grid.T, grid @ grid.T, atol=1e-6)  # the same angles between rows
     with torch.no_grad():
         one = ray.medium(torch.tensor([[0.0, 0.0, -1.0]]))
     assert report["beta_D"] == pytest.approx(one.sigma_attn[0].tolist(), rel=1e-5)
