@@ -227,7 +227,7 @@ class SceneMedium(nn.Module):
 
     def veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
         """``1 + rise clamp(up - start, 0, end - start)`` for rays with these unit directions, ``up`` their
-        :meth:`elevation` (1 below ``start``)."""
+        :func:`sin_elevation` along :attr:`vertical` (1 below ``start``)."""
         up = sin_elevation(directions, self.vertical)
         above = torch.minimum(up, self.veil_rise_to) - self.veil_rise_from
         return 1.0 + self.veil_rise * above.clamp_min(0.0)
