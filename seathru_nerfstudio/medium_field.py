@@ -220,8 +220,11 @@ class SceneMedium(nn.Module):
             self.veil_rise_to.fill_(max(float(end), float(start)))
 
     def set_vertical(self, vertical: Sequence[float] | Tensor) -> None:
-        """The scene frame's up (three numbers, normalised here) along which the elevation is measured."""
+        """The scene frame's up (three numbers, normalised here) along which the elevation is measured;
+        a ``ValueError`` for a zero or non-finite vector, which has no direction."""
         values = torch.as_tensor(vertical, dtype=torch.float64).reshape(3)
+        if not (bool(torch.isfinite(values).all()) and float(values.norm()) > 0):
+            raise ValueError(f"the scene's vertical must be a finite non-zero vector, got {values.tolist()}")
         with torch.no_grad():
             self.vertical.copy_(values / values.norm())
 

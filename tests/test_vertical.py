@@ -101,3 +101,11 @@ def test_the_veil_rises_along_the_scene_vertical():
     assert torch.allclose(medium.veil_gain(level), torch.ones(1, 3), atol=1e-6)
     assert torch.allclose(medium.veil_gain(straight_up), torch.full((1, 3), 2.0), atol=1e-6)
     assert "vertical" not in medium.state_dict()  # from the data at every start
+
+
+@pytest.mark.parametrize("vertical", [[0.0, 0.0, 0.0], [float("nan"), 0.0, 1.0], [float("inf"), 0.0, 0.0]])
+def test_a_vertical_without_a_direction_is_refused(vertical):
+    medium = SceneMedium()
+    with pytest.raises(ValueError, match="finite non-zero"):
+        medium.set_vertical(vertical)
+    assert medium.vertical.tolist() == [0.0, 0.0, 1.0]  # left as it was
