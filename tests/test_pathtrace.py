@@ -153,6 +153,31 @@ def test_scene_folder_layout_and_cache(tmp_path):
     assert generate(config) == out and (out / "scene.json").stat().st_mtime_ns == stamp
 
 
+def test_structure_from_motion_that_fails_keeps_the_renders_and_says_why_once(tmp_path, monkeypatch):
+    """Where our SfM cannot register the views (4 noisy 32x24 renders), the command raises one
+    error naming the images and what SfM said, runs SfM once (it is repeatable, so a second run
+    would say the same), and keeps the renders without ``transforms.json`` for ``--poses truth``."""
+    import seathru_nerfstudio.data.process as process_module
+
+    calls = []
+    real_process = process_module.process
+    monkeypatch.setattr(process_module, "process", lambda config: calls.append(config) or real_process(config))
+    config = PathtraceConfig(preset="fog", output_dir=tmp_path / "fog", width=W, height=H, num_views=4, spp=2, poses="sfm")
+    with pytest.raises(PathtraceError, match="structure from motion") as raised:
+        generate(config)
+    assert len(calls) == 1
+    assert "\n" not in str(raised.value) and "images" in str(raised.value)
+    out = config.folder()
+    assert sorted(p.name for p in (out / "images").iterdir()) == [f"frame_{i:05d}.png" for i in range(4)]
+    assert not (out / "transforms.json").exists()
+    record = json.loads((out / "scene.json").read_text())
+    assert record["options_hash"] is None and str(raised.value).startswith(record["registration"]["failed"])
+    assert "--poses truth" in str(raised.value)
+    assert not any(p.name.startswith("_sfm") for p in out.rglob("*"))
+    truth = generate(dataclasses.replace(config, poses="truth"))  # the renders are reused for the true poses
+    assert (truth / "transforms.json").is_file()
+
+
 def test_the_presets_sample_count_is_the_default_and_noise_falls_as_its_root():
     """``--spp`` unset renders at the preset's count (the cache key says so: the same as spelling
     it out, other than another count), and the Monte Carlo noise, the difference between two

@@ -4,7 +4,8 @@ fog or clear air, in ``seathru-synth``'s dataset layout, with poses from our own
 Steps: draw the layout from the seed; render every view (in-medium image, J, medium-free,
 range, z-depth, object ids); fit the best SeaThru medium to the training views
 (:mod:`~seathru_nerfstudio.data.pathtrace.truth`); run ``seathru-process-data`` on the
-in-medium images (up to ``--sfm-tries`` times while some image does not register); align
+in-medium images once (it is repeatable to the bit, and retries its mapper with other initial
+pairs itself: :func:`~seathru_nerfstudio.data.sfm.run_sfm`); align
 the recovered poses to the true ones (:mod:`~seathru_nerfstudio.data.pathtrace.align`);
 write ``transforms.json`` with the SfM poses, the SfM sparse depths in metres and the
 ground-truth fields, ``ground_truth/medium.json`` and ``scene.json``.
@@ -70,8 +71,6 @@ class PathtraceConfig:
     poses: Literal["sfm", "truth"] = "sfm"
     """sfm: poses and sparse depths from seathru-process-data, aligned to the truth; truth: the
     true poses and SfM-like sparse depths drawn from the true range (a diagnostic only)."""
-    sfm_tries: int = 3
-    """Run structure from motion up to this many times while some image does not register."""
     sfm_points_per_view: int = 300
     """--poses truth: sparse depth points per view."""
     variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = "auto"
@@ -89,7 +88,7 @@ class PathtraceConfig:
     def cache_key(self, renders_only: bool = False) -> str:
         """Hash of the options that determine the folder (``renders_only``: the renders alone,
         without the pose options, so a new pose run reuses them)."""
-        skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_tries", "sfm_points_per_view"} if renders_only else set())
+        skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_points_per_view"} if renders_only else set())
         options = {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
         options["spp"] = self.samples_per_pixel()  # the default and its value name the same renders
         options["generator_version"] = GENERATOR_VERSION
@@ -103,8 +102,8 @@ def validate(config: PathtraceConfig) -> None:
         raise PathtraceError("--width and --height must be at least 8 pixels")
     if config.num_views < 3:
         raise PathtraceError("--num-views must be at least 3")
-    if (config.spp is not None and config.spp < 1) or config.max_depth < 1 or config.sfm_tries < 1:
-        raise PathtraceError("--spp, --max-depth and --sfm-tries must be at least 1")
+    if (config.spp is not None and config.spp < 1) or config.max_depth < 1:
+        raise PathtraceError("--spp and --max-depth must be at least 1")
 
 
 def _read_record(folder: Path) -> Optional[Dict[str, Any]]:
@@ -173,7 +172,7 @@ def generate(config: PathtraceConfig) -> Path:
         }
         try:
             if config.poses == "sfm":
-                frames, camera, registration = _sfm_frames(build, names, layout.poses, config.sfm_tries)
+                frames, camera, registration = _sfm_frames(build, names, layout.poses)
             else:
                 frames, camera, registration = _true_frames(build, names, layout.poses, views, config)
             _write_transforms(build, frames, camera, names, held)
@@ -235,34 +234,20 @@ def _render_all(renderer: Renderer, layout, config: PathtraceConfig, build: Path
     return views, seconds
 
 
-def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray, tries: int):
+def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray):
     """Poses and sparse depths from ``seathru-process-data`` on the in-medium images, aligned to
-    the true camera centres by a similarity; the best of up to ``tries`` runs."""
+    the true camera centres by a similarity."""
     from seathru_nerfstudio.data.process import ProcessDataError, ProcessSeathruData, process
     from seathru_nerfstudio.data.sfm import SfmError
 
-    best, attempts = None, []
-    for attempt in range(tries):
-        work = build / f"_sfm{attempt}"
-        try:
-            report = process(ProcessSeathruData(data=build / "images", output_dir=work, white_balance="none", camera_model="PINHOLE"))
-            count = len(report.sfm.registered)
-        except (SfmError, ProcessDataError) as error:
-            CONSOLE.print(f"[bold yellow]seathru-pathtrace: structure from motion try {attempt + 1} failed: {error}")
-            count = 0
-        attempts.append(count)
-        if best is None or count > best[1]:
-            if best is not None:
-                shutil.rmtree(best[0], ignore_errors=True)
-            best = (work, count)
-        else:
-            shutil.rmtree(work, ignore_errors=True)
-        if count == len(names):
-            break
-        CONSOLE.print(f"[bold yellow]seathru-pathtrace: try {attempt + 1}: {count}/{len(names)} images registered")
-    work, count = best
+    work = build / "_sfm"
+    try:
+        report = process(ProcessSeathruData(data=build / "images", output_dir=work, white_balance="none", camera_model="PINHOLE"))
+    except (SfmError, ProcessDataError) as error:
+        raise PathtraceError(f"structure from motion failed on {build / 'images'}: {error}") from error
+    count = len(report.sfm.registered)
     if count < 3:
-        raise PathtraceError(f"structure from motion registered at most {count} of {len(names)} images in {tries} tries: cannot align poses")
+        raise PathtraceError(f"structure from motion registered {count} of {len(names)} images: cannot align poses")
     sfm = json.loads((work / "transforms.json").read_text())
     index = {name: i for i, name in enumerate(names)}
     sfm_frames = sorted(sfm["frames"], key=lambda f: index[Path(f["file_path"]).name])
@@ -284,7 +269,6 @@ def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray, tries: in
         "poses": "sfm",
         "registered": len(ids),
         "total": len(names),
-        "tries": attempts,
         "unregistered": [names[i] for i in range(len(names)) if i not in frames],
         "alignment_scale_m_per_unit": sim.scale,
         "alignment_residual_rms_m": float(np.sqrt(np.mean(residual**2))),
