@@ -1,5 +1,5 @@
 """Losses of SeaThru-NeRF (sec. 3.5): RawNeRF relative L2 and the binary transmittance prior; the
-backscatter excess and envelope terms; the DS-NeRF depth loss on sparse SfM depths."""
+backscatter excess term; the DS-NeRF depth loss on sparse SfM depths."""
 
 from __future__ import annotations
 
@@ -61,32 +61,6 @@ def binary_transmittance_loss(
     t = transmittance.float()
     logits = torch.stack([-t.abs() / scale, math.log(empty_weight) - (1.0 - t).abs() / scale], dim=0)
     return -torch.logsumexp(logits, dim=0).mean()
-
-
-def backscatter_envelope_loss(
-    image: Float[Tensor, "*batch 3"],
-    ray_range: Float[Tensor, "*batch 1"],
-    veil: Float[Tensor, "*batch 3"],
-    sigma: Float[Tensor, "*batch 3"],
-    quantile: float = 0.01,
-) -> Float[Tensor, ""]:
-    """Pinball loss that fits the backscatter ``B(r) = veil (1 - e^{-sigma r})`` as the lower
-    ``quantile`` envelope of the image at known ranges ``r`` (scene units, ``sigma`` per unit).
-
-    ``I = J e^{-beta_D r} + B(r)`` with ``J >= 0`` puts every pixel at or above its backscatter,
-    and dark surfaces sit on it: Sea-thru's dark-pixel estimate (Akkaynak & Treibitz, CVPR 2019).
-    With ``u = I - B``: ``mean(max(q u, (q - 1) u))``, minimised when a fraction ``q`` of the
-    pixels lies below ``B``. Rays whose range is not finite and positive are left out (mean
-    over the rest; 0 if there are none).
-    """
-    if not 0.0 < quantile < 1.0:
-        raise ValueError(f"quantile must be in (0, 1), got {quantile}")
-    known = torch.isfinite(ray_range) & (ray_range > 0)
-    safe_range = torch.where(known, ray_range, torch.zeros_like(ray_range))
-    residual = image - veil * -torch.expm1(-sigma * safe_range)
-    pinball = torch.maximum(quantile * residual, (quantile - 1.0) * residual)
-    weight = known.to(pinball.dtype).expand_as(pinball)
-    return (pinball * weight).sum() / torch.clamp(weight.sum(), min=1.0)
 
 
 def depth_kernel_variance(

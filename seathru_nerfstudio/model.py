@@ -30,7 +30,6 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio import diagnostics, export, metrics, viewer
 from seathru_nerfstudio.camera_rendering import MEDIUM_OUTPUTS, WATER_OUTPUTS, lazy_camera_outputs
 from seathru_nerfstudio.losses import (
-    backscatter_envelope_loss,
     backscatter_excess_loss,
     binary_transmittance_loss,
     rawnerf_loss,
@@ -236,10 +235,7 @@ class SeathruModel(NerfactoModel):
                 outputs.pop(name)
             return outputs
         medium = self.medium(ray_bundle.directions)  # once per ray
-        envelope = None
         if self.object_frozen:
-            if self.config.research.envelope_quantile > 0:
-                envelope = torch.cat([medium.sigma_attn, medium.sigma_bs], dim=-1)
             # An empty scene shows exactly c_med whatever the densities: keep round-off gradients off them.
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())
         elif self.veil_held:
@@ -250,7 +246,7 @@ class SeathruModel(NerfactoModel):
             sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
             veil_from_open_rays=True,
         )
-        outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry, envelope)
+        outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry)
         if self.training and self.phases.backscatter_excess_active and not self.object_frozen:
             # The backscatter alone, the geometry and the veil held: the excess loss moves sigma_bs only.
             held = render_seathru(
@@ -299,7 +295,7 @@ class SeathruModel(NerfactoModel):
         zeros = torch.zeros_like(rgb)
         return SeathruRender(rgb=rgb, direct=rgb, backscatter=zeros, clean=rgb, weights=weights, transmittance=transmittance, accumulation=accumulation)
 
-    def _collect_outputs(self, ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry=None, envelope=None):
+    def _collect_outputs(self, ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry=None):
         """The outputs of one batch of rays from a render and its medium; ``geometry``: the first
         stage's object weights and transmittance, for the losses."""
         weights_list.append(render.weights if geometry is None else geometry[0])
@@ -325,8 +321,6 @@ class SeathruModel(NerfactoModel):
             outputs["direction_up"] = sin_elevation(ray_bundle.directions, self.vertical)
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
-            if envelope is not None:
-                outputs["medium_densities_for_envelope"] = envelope
         else:  # no loss reads them
             for i in range(self.config.num_proposal_iterations):
                 outputs[f"prop_depth_{i}"] = self.renderer_depth(weights=weights_list[i], ray_samples=ray_samples_list[i])
@@ -375,8 +369,6 @@ class SeathruModel(NerfactoModel):
             loss_dict["backscatter_excess_loss"] = research.backscatter_excess_mult * backscatter_excess_loss(
                 outputs["backscatter_geometry_held"], image, eps=research.rawnerf_eps
             )
-        if "medium_densities_for_envelope" in outputs and "depth_image" in batch:
-            loss_dict["backscatter_envelope_loss"] = self._envelope_loss(outputs, batch, image)
         depth_weight = self.config.clear_air_depth_loss_mult if self.clear_air else self.config.depth_loss_mult
         if self.training and depth_weight > 0:
             loss = self._depth_loss(outputs, batch)
@@ -394,18 +386,6 @@ class SeathruModel(NerfactoModel):
                 "dataset has no depth images. Set --pipeline.model.medium-first-steps 0."
             )
         return loss_dict
-
-    def _envelope_loss(self, outputs, batch, image: torch.Tensor) -> torch.Tensor:
-        """First stage, ``research.envelope_quantile``: the densities fit the backscatter envelope at
-        the SfM ranges under the veiling light learned so far (held here)."""
-        z_depth = batch["depth_image"].to(self.device)  # scene units; 0 = unknown
-        ray_range = z_depth * outputs.get("directions_norm", torch.ones_like(z_depth))
-        veil, quantile = outputs["medium_rgb"].detach(), self.config.research.envelope_quantile
-        sigma_attn, sigma_bs = outputs["medium_densities_for_envelope"].split(3, dim=-1)
-        loss = backscatter_envelope_loss(image, ray_range, veil, sigma_bs, quantile)
-        if self.config.research.envelope_densities == "both":
-            loss = loss + backscatter_envelope_loss(image, ray_range, veil, sigma_attn, quantile)
-        return loss
 
     def _depth_loss(self, outputs, batch) -> Optional[torch.Tensor]:
         """The DS-NeRF depth loss on the SfM depths (or, ``research.depth_source ground-truth``, on a

@@ -37,10 +37,6 @@ class ResearchConfig(PrintableConfig):
     """Which densities ``medium_fit_oracle`` replaces: both, ``β_D`` alone or ``β_B`` alone."""
     depth_source: Literal["sfm", "ground-truth"] = "sfm"
     """Depth loss target: the sparse SfM depths, or a synthetic scene's dense true range."""
-    envelope_quantile: float = 0.0
-    """If > 0, the first stage fits the densities to this lower quantile of the image at the SfM depths."""
-    envelope_densities: Literal["both", "backscatter"] = "both"
-    """Which densities ``envelope_quantile`` fits."""
     auto_decision_step: int = 500
     """``medium_model auto``: the step at which the medium model is chosen."""
     auto_evidence_steps: int = 50

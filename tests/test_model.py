@@ -16,7 +16,7 @@ from nerfstudio.data.scene_box import SceneBox
 from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from seathru_nerfstudio import metrics
-from seathru_nerfstudio.losses import backscatter_envelope_loss, binary_transmittance_loss, rawnerf_loss
+from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.model import SeathruModel, SeathruModelConfig
 
@@ -718,63 +718,6 @@ def test_water_controls_change_the_medium_outside_training_unless_switched_off()
         assert torch.equal(evaluated[name], trained[name]), name
     for name in ("medium_rgb", "medium_attenuation", "medium_backscatter"):  # (training jitters the samples)
         assert torch.equal(training[name], trained[name]), name  # training never sees the controls
-
-
-def test_medium_first_stage_fits_both_densities_to_the_backscatter_envelope():
-    m = tiny_model(medium_first_steps=5, medium_scope="scene", envelope_quantile=0.01)
-    m.train()
-    depth = torch.full((32, 1), 0.6)
-    depth[16:] = 0.0  # unknown
-    batch = {"image": torch.rand(32, 3), "depth_image": depth}
-    for step, expected in ((0, True), (5, False)):
-        m.train_step = step
-        m.zero_grad()
-        bundle = rays(32, seed=4)
-        bundle.metadata["directions_norm"] = torch.full((32, 1), 1.1)
-        out = m(bundle)
-        losses = m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
-        assert ("backscatter_envelope_loss" in losses) == expected, step
-    m.train_step = 0
-    m.zero_grad()
-    bundle = rays(32, seed=4)
-    bundle.metadata["directions_norm"] = torch.full((32, 1), 1.1)
-    out = m(bundle)
-    losses = m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
-    losses["backscatter_envelope_loss"].backward()
-    density_grad = m.medium_field.density_raw.grad
-    assert (density_grad[:3].abs() > 0).all() and (density_grad[3:].abs() > 0).all()  # attenuation and backscatter
-    assert m.medium_field.rgb_logit.grad is None or m.medium_field.rgb_logit.grad.abs().sum() == 0  # veil held
-    # the term is the loss of the ranges z * |d| (z-depth to range)
-    sigma_attn, sigma_bs = out["medium_densities_for_envelope"].detach().split(3, dim=-1)
-    veil = out["medium_rgb"].detach()
-    expected = backscatter_envelope_loss(batch["image"], depth * 1.1, veil, sigma_attn, 0.01) + backscatter_envelope_loss(
-        batch["image"], depth * 1.1, veil, sigma_bs, 0.01
-    )
-    torch.testing.assert_close(losses["backscatter_envelope_loss"].detach(), expected)
-    off = tiny_model(medium_first_steps=5)  # off by default
-    off.train()
-    off.train_step = 0
-    out = off(rays(8))
-    batch = {"image": torch.rand(8, 3), "depth_image": torch.ones(8, 1)}
-    assert "backscatter_envelope_loss" not in off.get_loss_dict(out, batch, off.get_metrics_dict(out, batch))
-
-
-def test_the_envelope_can_fit_the_backscatter_density_alone():
-    m = tiny_model(
-        medium_first_steps=5, medium_scope="scene", envelope_quantile=0.01, envelope_densities="backscatter"
-    )
-    m.train()
-    m.train_step = 0
-    depth = torch.full((32, 1), 0.6)
-    batch = {"image": torch.rand(32, 3), "depth_image": depth}
-    out = m(rays(32, seed=4))
-    losses = m.get_loss_dict(out, batch, m.get_metrics_dict(out, batch))
-    losses["backscatter_envelope_loss"].backward()
-    density_grad = m.medium_field.density_raw.grad
-    assert (density_grad[:3] == 0).all() and (density_grad[3:].abs() > 0).all()
-    sigma_bs = out["medium_densities_for_envelope"].detach()[..., 3:]
-    expected = backscatter_envelope_loss(batch["image"], depth, out["medium_rgb"].detach(), sigma_bs, 0.01)
-    torch.testing.assert_close(losses["backscatter_envelope_loss"].detach(), expected)
 
 
 def test_fitted_densities_that_are_held_get_no_gradient_and_the_others_learn():
