@@ -165,7 +165,7 @@ def test_structure_from_motion_that_fails_keeps_the_renders_and_says_why_once(tm
     config = PathtraceConfig(preset="fog", output_dir=tmp_path / "fog", width=W, height=H, num_views=4, spp=2, poses="sfm")
     with pytest.raises(PathtraceError, match="structure from motion") as raised:
         generate(config)
-    assert len(calls) == 1
+    assert len(calls) == 1 and calls[0].camera_model == "SIMPLE_PINHOLE"  # the renderer's camera
     assert "\n" not in str(raised.value) and "images" in str(raised.value)
     out = config.folder()
     assert sorted(p.name for p in (out / "images").iterdir()) == [f"frame_{i:05d}.png" for i in range(4)]
@@ -176,6 +176,15 @@ def test_structure_from_motion_that_fails_keeps_the_renders_and_says_why_once(tm
     assert not any(p.name.startswith("_sfm") for p in out.rglob("*"))
     truth = generate(dataclasses.replace(config, poses="truth"))  # the renders are reused for the true poses
     assert (truth / "transforms.json").is_file()
+
+
+def test_the_sfm_camera_model_is_a_pose_option_that_reuses_the_renders():
+    """Another SfM camera model names another scene (the cache key) made from the same renders (the
+    render key), so ``--sfm-camera-model`` re-registers a cached scene without rendering it again."""
+    simple = PathtraceConfig(preset="coastal")
+    other = dataclasses.replace(simple, sfm_camera_model="PINHOLE")
+    assert simple.cache_key() != other.cache_key()
+    assert simple.cache_key(renders_only=True) == other.cache_key(renders_only=True)
 
 
 def test_the_presets_sample_count_is_the_default_and_noise_falls_as_its_root():

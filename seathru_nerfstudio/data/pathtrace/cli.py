@@ -71,6 +71,9 @@ class PathtraceConfig:
     poses: Literal["sfm", "truth"] = "sfm"
     """sfm: poses and sparse depths from seathru-process-data, aligned to the truth; truth: the
     true poses and SfM-like sparse depths drawn from the true range (a diagnostic only)."""
+    sfm_camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "OPENCV"] = "SIMPLE_PINHOLE"
+    """--poses sfm: the camera model SfM calibrates; SIMPLE_PINHOLE is the renderer's (one focal
+    length, no distortion): PINHOLE's two focal lengths came out 10% apart on turbid water."""
     sfm_points_per_view: int = 300
     """--poses truth: sparse depth points per view."""
     variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = "auto"
@@ -88,7 +91,7 @@ class PathtraceConfig:
     def cache_key(self, renders_only: bool = False) -> str:
         """Hash of the options that determine the folder (``renders_only``: the renders alone,
         without the pose options, so a new pose run reuses them)."""
-        skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_points_per_view"} if renders_only else set())
+        skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_camera_model", "sfm_points_per_view"} if renders_only else set())
         options = {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
         options["spp"] = self.samples_per_pixel()  # the default and its value name the same renders
         options["generator_version"] = GENERATOR_VERSION
@@ -172,7 +175,7 @@ def generate(config: PathtraceConfig) -> Path:
         }
         try:
             if config.poses == "sfm":
-                frames, camera, registration = _sfm_frames(build, names, layout.poses)
+                frames, camera, registration = _sfm_frames(build, names, layout.poses, config.sfm_camera_model)
             else:
                 frames, camera, registration = _true_frames(build, names, layout.poses, views, config)
             _write_transforms(build, frames, camera, names, held)
@@ -234,15 +237,15 @@ def _render_all(renderer: Renderer, layout, config: PathtraceConfig, build: Path
     return views, seconds
 
 
-def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray):
-    """Poses and sparse depths from ``seathru-process-data`` on the in-medium images, aligned to
-    the true camera centres by a similarity."""
+def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray, camera_model: str):
+    """Poses and sparse depths from ``seathru-process-data`` on the in-medium images (one shared
+    ``camera_model``, COLMAP name, self-calibrated), aligned to the true camera centres by a similarity."""
     from seathru_nerfstudio.data.process import ProcessDataError, ProcessSeathruData, process
     from seathru_nerfstudio.data.sfm import SfmError
 
     work = build / "_sfm"
     try:
-        report = process(ProcessSeathruData(data=build / "images", output_dir=work, white_balance="none", camera_model="PINHOLE"))
+        report = process(ProcessSeathruData(data=build / "images", output_dir=work, white_balance="none", camera_model=camera_model))
     except (SfmError, ProcessDataError) as error:
         raise PathtraceError(f"structure from motion failed on {build / 'images'}: {error}") from error
     count = len(report.sfm.registered)
