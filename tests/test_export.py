@@ -37,13 +37,13 @@ def run(tmp_path_factory) -> Dict[str, Path]:
     config.pipeline.model.medium_model = "seathru"
     config.pipeline.model.research.depth_source = "ground-truth"
     config.pipeline.model.depth_loss_mult = 1.0  # 1e-2 leaves a wall in the open water after 200 steps
+    from nerfstudio.scripts.train import train_loop
+
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        trainer = config.setup(local_rank=0, world_size=1)
-        trainer.setup()
         config.save_config()
-        trainer.train()
+        train_loop(local_rank=0, world_size=1, config=config)  # as ns-train: seeded by machine.seed, whatever ran before
     finally:
         torch.set_num_threads(threads)
     return {"root": root, "scene": scene, "config": config.get_base_dir() / "config.yml"}
