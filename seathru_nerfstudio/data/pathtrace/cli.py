@@ -294,7 +294,7 @@ def _true_frames(build: Path, names: List[str], true_poses: np.ndarray, views, c
         write_png16_gray(build / "depth" / name, sparse)
         frames[i] = {"transform_matrix": pose.tolist(), "depth_file_path": f"depth/{name}"}
     camera = {"camera_model": "PINHOLE", **K, "w": config.width, "h": config.height}
-    return frames, camera, {"poses": "truth", "registered": len(names), "total": len(names), "tries": [], "unregistered": []}
+    return frames, camera, {"poses": "truth", "registered": len(names), "total": len(names), "unregistered": []}
 
 
 def _write_transforms(build: Path, frames: Dict[int, Dict[str, Any]], camera: Dict[str, Any], names: List[str], held: List[bool]) -> None:
