@@ -8,7 +8,9 @@ it (``nerfstudio-data``: poses, sparse depths, the observation table), and print
   veiling light, with its standard errors (what ``medium_fit_step`` would do with a perfect veil);
 * the dark envelope of the whole scene (:mod:`~seathru_nerfstudio.medium_envelope`), with the veil
   fitted and with the true veil held;
-* the backscatter share of the observed colour that each implies at the observations' ranges.
+* the backscatter share of the observed colour that each implies at the observations' ranges;
+* how the fit's ``beta_B`` follows the veil it is given: the fit under the true veil scaled by
+  0.8-1.2, with its residual (how little the observations prefer one veil over another).
 
     .venv/bin/python scripts/probe_medium.py outputs/pathtraced/coastal [more scenes]
 """
@@ -56,6 +58,13 @@ def probe(scene: Path) -> None:
         print(
             f"{label:20s} B_inf {show(envelope.veil)}   beta_B {show(envelope.beta_B)}   "
             f"backscatter share {show(share)}"
+        )
+    for scale in (0.8, 0.9, 1.1, 1.2):
+        scaled = fit_densities(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil * scale, start, start)
+        error = scaled.backscatter.numpy() / np.asarray(truth["beta_B"]) - 1
+        print(
+            f"fit, veil x{scale:.1f}  beta_B error {show(100 * error)} %   residual / true veil's "
+            f"{scaled.residual / fit.residual:.4f}"
         )
     true_share = (np.asarray(truth["B_inf"]) * -np.expm1(-np.asarray(truth["beta_B"]) * ranges[:, None])).mean(axis=0)
     print(f"true backscatter share {show(true_share / np.maximum(mean_colour, 1e-9))}; ranges {np.percentile(ranges, [5, 50, 95]).round(2)}")
