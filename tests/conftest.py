@@ -16,6 +16,10 @@
 * ``decomposition_run``: the ``results.json`` of the decomposition check's short ``seathru-bench
   run`` (``tiny_training.DECOMPOSITION_BENCH``), started in the background at collection like the
   tiny run: the longest work of the suite overlaps the rest.
+* ``background_job``: ``background_job(job)`` is the result of ``job``, a function of a fresh
+  folder that a test module lists in its ``BACKGROUND_JOBS`` (work that only starts CLIs and
+  waits for them: a training run to kill, a two-process run). The listed jobs start at collection,
+  one after the other on a thread of their own, so that they run on the core the tests leave free.
 
 Every process of the suite computes on one thread (``OMP_NUM_THREADS=1`` unless set, and
 ``torch.set_num_threads(1)`` here): on a 2-core machine torch's two threads wait on each other
@@ -38,7 +42,7 @@ import os
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Dict
+from typing import Any, Callable, Dict
 
 import pytest
 
@@ -87,9 +91,14 @@ def _start_bench(name: str, root: Path) -> None:
     worker.shutdown(wait=False)
 
 
+_jobs: Dict[Callable[[Path], Any], Future] = {}
+"""The futures of the test modules' ``BACKGROUND_JOBS``, by job."""
+
+
 def pytest_collection_finish(session) -> None:
     """Start the tiny run and the bench runs as soon as a collected test needs them: their CLIs run
-    on one thread each, the tests meanwhile on the other core."""
+    on one thread each, the tests meanwhile on the other core. Then queue the collected modules'
+    ``BACKGROUND_JOBS`` on one more thread, in the order their modules run."""
     if session.config.option.collectonly:
         return
     used = set().union(*(set(getattr(item, "fixturenames", ())) for item in session.items))
@@ -98,6 +107,31 @@ def pytest_collection_finish(session) -> None:
             _start_bench(name, session.config._tmp_path_factory.mktemp(name))
     if TRAINED_RUN_USERS & used:
         _start_in_background(session.config._tmp_path_factory.mktemp("tiny_trained_run"))
+    modules = dict.fromkeys(getattr(item, "module", None) for item in session.items)
+    jobs = [job for module in modules for job in getattr(module, "BACKGROUND_JOBS", ())]
+    if jobs:
+        lane = ThreadPoolExecutor(1, thread_name_prefix="background_jobs")
+        for job in jobs:
+            _jobs[job] = lane.submit(job, session.config._tmp_path_factory.mktemp(job.__name__))
+        lane.shutdown(wait=False)
+
+
+@pytest.fixture(scope="session")
+def background_job(tmp_path_factory) -> Callable[[Callable[[Path], Any]], Any]:
+    """``background_job(job)``: the result of ``job`` (listed in its module's ``BACKGROUND_JOBS``),
+    waited for; a job that was not started at collection runs here, once."""
+
+    def result(job: Callable[[Path], Any]) -> Any:
+        if job not in _jobs:
+            future: Future = Future()
+            try:
+                future.set_result(job(tmp_path_factory.mktemp(job.__name__)))
+            except BaseException as error:  # noqa: BLE001 - kept for every test that asks, as a started job's is
+                future.set_exception(error)
+            _jobs[job] = future
+        return _jobs[job].result()
+
+    return result
 
 
 @pytest.fixture(scope="session")
@@ -159,10 +193,20 @@ def ns_render():
     return run
 
 
+BACKGROUND_RESULTS = TRAINED_RUN_USERS | set(BENCH_RUNS) | {"background_job"}
+"""The fixtures that wait for a run started in the background at collection."""
+
+
 def pytest_collection_modifyitems(items) -> None:
+    """Mark every test that uses the tiny run ``slow``, and move the modules that wait for a
+    background run (:data:`BACKGROUND_RESULTS`) to the end, each whole and in the order
+    pytest-randomly gave it (its shuffle runs before this hook): a test that waits early leaves a
+    core idle while the rest of the suite could have run beside the background work."""
     for item in items:
         if {"tiny_run", "tiny_trained_run"} & set(getattr(item, "fixturenames", ())):
             item.add_marker(pytest.mark.slow)
+    waiting_modules = {item.module for item in items if BACKGROUND_RESULTS & set(getattr(item, "fixturenames", ()))}
+    items.sort(key=lambda item: getattr(item, "module", None) in waiting_modules)  # stable: the order within each part stays
 
 
 def pytest_terminal_summary(terminalreporter, config) -> None:

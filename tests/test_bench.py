@@ -331,8 +331,11 @@ def test_report_writes_table_and_plot(tmp_path):
 
 
 @pytest.mark.slow
-def test_tiny_benchmark_run_end_to_end(tmp_path):
-    out = tmp_path / "bench"
+def tiny_benchmark(root):
+    """``seathru-bench run`` of two methods for 3 iterations on a tiny water scene, into ``root / "bench"``
+    (``{"out", "proc"}``). Listed in ``BACKGROUND_JOBS``: the suite starts it at collection
+    (conftest's ``background_job``)."""
+    out = root / "bench"
     cmd = [
         sys.executable, "-m", "seathru_nerfstudio.bench.cli", "run",
         "--scenes", "water", "--methods", "seathru-nerf-lite", "nerfacto",
@@ -340,7 +343,15 @@ def test_tiny_benchmark_run_end_to_end(tmp_path):
         "--first-eval-fraction", "0.34", "--jobs", "2", "--width", "32", "--height", "24", "--num-views", "6",
         "--save-model",
     ]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=600)
+    return {"out": out, "proc": subprocess.run(cmd, capture_output=True, text=True, timeout=600)}
+
+
+BACKGROUND_JOBS = [tiny_benchmark]
+
+
+def test_tiny_benchmark_run_end_to_end(background_job):
+    job = background_job(tiny_benchmark)
+    out, proc = job["out"], job["proc"]
     assert proc.returncode == 0, proc.stderr[-3000:]
     results = json.loads((out / "results.json").read_text())
     assert results["failures"] == []

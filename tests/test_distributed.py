@@ -88,16 +88,21 @@ def _rank(local_rank: int, dist_url: str, scene: str, out: str) -> None:
         dist.destroy_process_group()
 
 
-@pytest.fixture(scope="module")
-def ranks(tmp_path_factory):
+def two_ranks(root: Path) -> dict:
+    """:func:`_rank` in two spawned processes; what each wrote. Listed in ``BACKGROUND_JOBS``: the
+    suite starts it at collection (conftest's ``background_job``)."""
     from seathru_nerfstudio.distributed import free_local_url
 
-    root = tmp_path_factory.mktemp("ddp")
     scene = make_scene(root)
     out = root / "out"
     out.mkdir()
     mp.spawn(_rank, args=(free_local_url(), str(scene), str(out)), nprocs=WORLD, join=True)
     return {"out": out, "results": [torch.load(out / f"rank{r}.pt", weights_only=False) for r in range(WORLD)]}
+
+
+@pytest.fixture(scope="module")
+def ranks(background_job) -> dict:
+    return background_job(two_ranks)
 
 
 def test_both_ranks_take_part_and_gradients_are_averaged(ranks):
@@ -135,27 +140,38 @@ def test_only_rank_0_writes_checkpoints_and_logs(ranks):
         assert torch.equal(saved[name], value), name
 
 
-def test_the_cpu_entry_point_trains_with_two_processes(tmp_path):
-    """``python -m seathru_nerfstudio.distributed`` with ``ns-train``'s arguments: two Gloo
-    processes, one run folder, one checkpoint at the last step."""
+def cpu_entry_point_run(root: Path):
+    """``python -m seathru_nerfstudio.distributed`` with ``ns-train``'s arguments and two CPU processes
+    (``{"root", "result"}``: the folder, its ``subprocess.CompletedProcess``). Listed in
+    ``BACKGROUND_JOBS``: the suite starts it at collection (conftest's ``background_job``)."""
     import os
     import subprocess
     import sys
 
     from tiny_training import TINY_MODEL_ARGS
 
-    scene = make_scene(tmp_path)
+    scene = make_scene(root)
     args = [
         sys.executable, "-m", "seathru_nerfstudio.distributed", "seathru-nerf-lite",
-        "--data", str(scene), "--output-dir", str(tmp_path / "out"), "--timestamp", "cli",
+        "--data", str(scene), "--output-dir", str(root / "out"), "--timestamp", "cli",
         "--machine.device-type", "cpu", "--machine.num-devices", "2",
         "--max-num-iterations", "3", "--steps-per-save", "2", *TINY_MODEL_ARGS,
     ]  # fmt: skip
     env = dict(os.environ, PYTHONWARNINGS="ignore", OMP_NUM_THREADS="1")
-    result = subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)
+    return {"root": root, "result": subprocess.run(args, env=env, capture_output=True, text=True, timeout=600)}
+
+
+BACKGROUND_JOBS = [two_ranks, cpu_entry_point_run]
+
+
+def test_the_cpu_entry_point_trains_with_two_processes(background_job):
+    """``python -m seathru_nerfstudio.distributed`` with ``ns-train``'s arguments: two Gloo
+    processes, one run folder, one checkpoint at the last step."""
+    job = background_job(cpu_entry_point_run)
+    result, root = job["result"], job["root"]
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     assert "2 processes here, 2 in all" in result.stdout
-    (run,) = list((tmp_path / "out").glob("*/seathru-nerf-lite/cli"))
+    (run,) = list((root / "out").glob("*/seathru-nerf-lite/cli"))
     assert [p.name for p in (run / "nerfstudio_models").iterdir()] == ["step-000000002.ckpt"]
     state = load_checkpoint(run / "nerfstudio_models" / "step-000000002.ckpt")
     assert any(k.startswith("_model.module.medium_field") for k in state["pipeline"])  # saved from the DDP wrapper

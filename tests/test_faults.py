@@ -7,8 +7,8 @@ the run left alive afterwards.
 
 The cases that stop at set-up run the commands' entry points through :mod:`forked_cli` (a fork
 server that has imported nerfstudio once: ~10 s saved per case). The cases about processes run
-the installed console scripts themselves, in the background from the start of the module, while
-the others run: a run that finishes (no staging folder left), the viewer stopped with SIGTERM,
+the installed console scripts themselves, in the background from the start of the suite
+(``BACKGROUND_JOBS``), while the other tests run: a run that finishes (no staging folder left), the viewer stopped with SIGTERM,
 ns-train killed with SIGKILL (its data-loading worker must go too), and the data-loading worker
 killed under a training run (the run must end with that error instead of waiting forever).
 """
@@ -22,7 +22,7 @@ import signal
 import subprocess
 import sys
 import time
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Dict, List
 
@@ -32,7 +32,7 @@ import psutil
 import pytest
 
 import forked_cli
-from tiny_training import BIN, TINY_MODEL_ARGS
+from tiny_training import BIN, TINY_MODEL_ARGS, make_scene
 
 pytestmark = pytest.mark.slow  # runs nerfstudio's commands
 
@@ -176,18 +176,26 @@ def kill_worker(root: Path) -> Dict:
             trainer.kill()
 
 
-@pytest.fixture(scope="module", autouse=True)
-def background(scene, tmp_path_factory) -> Dict[str, Future]:
-    """The process cases, started in the background with the module's first test (whatever the
-    order); each test of them waits for its own."""
-    pool = ThreadPoolExecutor(max_workers=3)
-    futures = {}
-    for name, job in (("finished", finished_run_then_viewer), ("sigkill", sigkill_trainer), ("worker", kill_worker)):
-        root = tmp_path_factory.mktemp(name)
-        shutil.copytree(scene, root / "scene")
-        futures[name] = pool.submit(job, root)
-    yield futures
-    pool.shutdown(wait=True)
+def process_cases(root: Path) -> Dict[str, Dict]:
+    """The process cases side by side, each on its own copy of a tiny scene; their results by name.
+    Listed in ``BACKGROUND_JOBS``: the suite starts it at collection (conftest's ``background_job``)."""
+    scene = make_scene(root / "original")
+    cases = {"finished": finished_run_then_viewer, "sigkill": sigkill_trainer, "worker": kill_worker}
+    with ThreadPoolExecutor(max_workers=len(cases)) as pool:
+        futures = {}
+        for name, job in cases.items():
+            shutil.copytree(scene, root / name / "scene")
+            futures[name] = pool.submit(job, root / name)
+        return {name: future.result() for name, future in futures.items()}
+
+
+BACKGROUND_JOBS = [process_cases]
+
+
+@pytest.fixture(scope="module")
+def background(background_job) -> Dict[str, Dict]:
+    """The results of :func:`process_cases`."""
+    return background_job(process_cases)
 
 
 # -------------------------------------------------------------------------- data at set-up
@@ -359,24 +367,24 @@ def test_process_data_below_the_minimum_registered_fraction(scene, tmp_path) -> 
 
 # ------------------------------------------------------------------------------- processes
 def test_a_finished_run_leaves_no_staging_folder(background) -> None:
-    result = background["finished"].result(timeout=900)
+    result = background["finished"]
     assert result["returncode"] == 0, result["log"][-3000:]
     assert sorted(p.name for p in (result["run_dir"] / "nerfstudio_models").iterdir()) == ["step-000000002.ckpt"]
     assert not [name for name in result["left_in_run_dir"] if name.startswith(".")], result["left_in_run_dir"]
 
 
 def test_sigterm_of_the_viewer_leaves_no_process(background) -> None:
-    assert background["finished"].result(timeout=900)["viewer_left"] == []
+    assert background["finished"]["viewer_left"] == []
 
 
 def test_sigkill_of_ns_train_leaves_no_process(background) -> None:
-    result = background["sigkill"].result(timeout=900)
+    result = background["sigkill"]
     assert len(result["family"]) >= 1  # the data-loading worker at least
     assert result["left"] == []
 
 
 def test_a_killed_data_worker_ends_the_run_with_its_error(background) -> None:
-    result = background["worker"].result(timeout=900)
+    result = background["worker"]
     assert result["returncode"] == 1, result["log"][-3000:]
     assert "Traceback" not in result["log"]
     (line,) = [line for line in result["log"].splitlines() if line.startswith("Error:")]

@@ -55,9 +55,10 @@ def train_losses(run_dir: Path) -> dict:
     return losses
 
 
-@pytest.fixture(scope="module")
-def killed(tmp_path_factory):
-    root = tmp_path_factory.mktemp("resume")
+def killed_and_resumed(root: Path) -> dict:
+    """``ns-train`` SIGKILLed (with its data-loading workers) once its first checkpoint is written,
+    then the same command with ``--load-dir`` (its result under ``"resumed"``). Listed in
+    ``BACKGROUND_JOBS``: the suite starts it at collection (conftest's ``background_job``)."""
     scene = make_scene(root)
     out = root / "outputs"
     run_dir = out / "resume" / "seathru-nerf-lite" / "first"
@@ -74,7 +75,19 @@ def killed(tmp_path_factory):
         os.killpg(proc.pid, signal.SIGKILL)  # the trainer and its data-loader workers, mid-step
         proc.wait(60)
     assert proc.returncode == -signal.SIGKILL
-    return {"root": root, "scene": scene, "out": out, "run_dir": run_dir, "models": models}
+    first_losses = train_losses(run_dir)  # read before anything else touches the folder
+    resumed = subprocess.run(
+        ns_train(scene, out, "second", "--load-dir", str(models)), env=env(), capture_output=True, text=True, timeout=900
+    )
+    return {"root": root, "scene": scene, "out": out, "run_dir": run_dir, "models": models, "first_losses": first_losses, "resumed": resumed}
+
+
+BACKGROUND_JOBS = [killed_and_resumed]
+
+
+@pytest.fixture(scope="module")
+def killed(background_job) -> dict:
+    return background_job(killed_and_resumed)
 
 
 def test_only_complete_checkpoints_are_left(killed):
@@ -123,13 +136,10 @@ def test_resumed_trainer_has_the_checkpoints_step_optimiser_scheduler_and_fields
 
 
 def test_ns_train_resumes_with_load_dir_and_the_loss_carries_on(killed):
-    first = train_losses(killed["run_dir"])
+    first = killed["first_losses"]
     ckpt = sorted(killed["models"].glob("step-*.ckpt"))[-1]
     resumed_step = torch.load(ckpt, map_location="cpu")["step"] + 1
-    result = subprocess.run(
-        ns_train(killed["scene"], killed["out"], "second", "--load-dir", str(killed["models"])),
-        env=env(), capture_output=True, text=True, timeout=900,
-    )  # fmt: skip
+    result = killed["resumed"]
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-3000:]
     second_dir = killed["out"] / "resume" / "seathru-nerf-lite" / "second"
     second = train_losses(second_dir)
