@@ -22,8 +22,7 @@ from seathru_nerfstudio.phases import TrainingPhases
 from seathru_nerfstudio.losses import binary_transmittance_loss, rawnerf_loss
 from seathru_nerfstudio.rendering import render_seathru
 
-from test_model import rays
-from tiny_training import spy_calls, tiny_model
+from tiny_training import rays, spy_calls, tiny_model
 
 
 def count_medium_calls(model) -> list:

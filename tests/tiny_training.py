@@ -161,3 +161,26 @@ def bench_run(args, output_dir: Path) -> dict:
     if proc.returncode != 0:
         raise RuntimeError(f"seathru-bench failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
     return json.loads((output_dir / "results.json").read_text())
+
+
+def rays(num: int, seed: int = 0):
+    """``num`` rays from near the origin in random unit directions (a nerfstudio ``RayBundle``; seeded)."""
+    import torch
+    from nerfstudio.cameras.rays import RayBundle
+
+    gen = torch.Generator().manual_seed(seed)
+    directions = torch.nn.functional.normalize(torch.randn(num, 3, generator=gen), dim=-1)
+    return RayBundle(
+        origins=torch.randn(num, 3, generator=gen) * 0.1,
+        directions=directions,
+        pixel_area=torch.full((num, 1), 1e-4),
+        camera_indices=torch.zeros(num, 1, dtype=torch.long),
+    )
+
+
+def seeded_tiny_model():
+    """:func:`tiny_model` with torch's generator seeded first (its fields' initial weights)."""
+    import torch
+
+    torch.manual_seed(0)
+    return tiny_model()
