@@ -1,5 +1,5 @@
 """After training: ``ns-export`` without the water, ``seathru-restore``, ``seathru-medium`` and
-the GPU check's failure path, on one tiny model trained once for this module.
+``seathru-trim-mesh``, on one tiny model trained once for this module.
 
 The model: a 32x24, 6-view ``seathru-synth`` water scene, supervised with its true range (the
 dataset's ``gt_depth``; ``research.depth_source ground-truth``, weight 1), so that in a few seconds its
@@ -414,108 +414,6 @@ def test_seathru_medium_command(run, tmp_path, capsys):
     assert again["summary"] in capsys.readouterr().out
     assert medium_report.MediumCommand(load_config=tmp_path / "missing.yml").main() == 2
     assert "missing.yml: no such file" in capsys.readouterr().err
-
-
-def test_medium_report_units_ties_fit_and_directions(tmp_path):
-    """Unit: per metre is per scene unit times the dataparser scale; a tied model reports tied
-    densities; the fit's standard errors; a medium of the ray direction gets its table."""
-    from seathru_nerfstudio import medium_report
-    from tiny_training import tiny_model
-
-    model = tiny_model(metadata={"dataparser_scale": 4.0}, medium_model="uniform").eval()
-    with torch.no_grad():
-        model.medium_field.density_raw.copy_(torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5, 0.6]))
-    report = medium_report.medium_report(model, medium_report.UNKNOWN_UNIT, 7)
-    sigma = torch.nn.functional.softplus(torch.tensor([0.1, 0.2, 0.3, 0.4, 0.5, 0.6], dtype=torch.float64))
-    tied = (sigma[:3] + sigma[3:]) / 2 * 4.0  # uniform: one density per channel, scene units -> world units
-    assert report["beta_D"] == pytest.approx(tied.tolist()) and report["beta_B"] == pytest.approx(tied.tolist())
-    assert report["attenuation_length"] == pytest.approx((1 / tied).tolist())
-    assert report["units"] == "1/world unit" and "unknown scale" in report["summary"]
-    assert report["fit"] is None
-    model.fit_log_error.copy_(torch.tensor([0.01, 0.02, 0.2], dtype=torch.float64))
-    fit = medium_report.medium_report(model)["fit"]
-    assert fit["standard_error_beta_D"] == pytest.approx((tied * torch.tensor([0.01, 0.02, 0.2])).tolist())
-
-    assert "B_inf_rise" not in report  # no rise set
-    water = tiny_model(medium_model="seathru").eval()
-    water.medium_field.set_veil_rise(0.1, torch.tensor([0.0, 0.5, 2.0]), 0.3)
-    rise = medium_report.medium_report(water)
-    down = torch.tensor(rise["B_inf"], dtype=torch.float64)
-    assert rise["B_inf_rise"]["above_sin_elevation"] == pytest.approx(0.1)
-    assert rise["B_inf_rise"]["up_to_sin_elevation"] == pytest.approx(0.3)
-    expected = (down * (1 + torch.tensor([0.0, 0.5, 2.0], dtype=torch.float64) * (0.3 - 0.1))).clamp(max=1.0)
-    assert rise["B_inf_rise"]["B_inf_highest"] == pytest.approx(expected.tolist(), rel=1e-5)
-    assert rise["B_inf_rise"]["vertical"] == pytest.approx([0.0, 0.0, 1.0])
-    water.medium_field.set_vertical([0.0, 0.6, 0.8])  # elevations along a tilted up: the same veil at its top
-    tilted = medium_report.medium_report(water)["B_inf_rise"]
-    assert tilted["vertical"] == pytest.approx([0.0, 0.6, 0.8]) and tilted["B_inf_highest"] == pytest.approx(expected.tolist(), rel=1e-5)
-    assert "B_inf looking up to" in rise["summary"]
-
-    ray = tiny_model(medium_model="seathru", medium_scope="ray").eval()
-    report = medium_report.medium_report(ray, view_directions=torch.tensor([[0.0, 0.0, -1.0]]))
-    grid = medium_report.direction_grid()
-    assert len(report["directions"]) == len(grid) and torch.allclose(grid.norm(dim=-1), torch.ones(len(grid)))
-    tilted_up = torch.tensor([0.0, 0.6, 0.8])
-    tilted_grid = medium_report.direction_grid(tilted_up)  # the same table about another up: elevations along it
-    assert torch.allclose(tilted_grid @ tilted_up, grid[:, 2], atol=1e-6)
-    assert torch.allclose(tilted_grid @ tilted_grid.T, grid @ grid.T, atol=1e-6)  # the same angles between rows
-    with torch.no_grad():
-        one = ray.medium(torch.tensor([[0.0, 0.0, -1.0]]))
-    assert report["beta_D"] == pytest.approx(one.sigma_attn[0].tolist(), rel=1e-5)
-    row = report["directions"][3]
-    with torch.no_grad():
-        there = ray.medium(torch.tensor([row["direction"]]))
-    assert row["beta_B"] == pytest.approx(there.sigma_bs[0].tolist(), rel=1e-5)
-
-    synth = make_scene(tmp_path)
-    assert medium_report.world_unit(synth) == medium_report.METRE
-    (tmp_path / "colmap").mkdir()
-    (tmp_path / "colmap" / "transforms.json").write_text("{}")
-    assert medium_report.world_unit(tmp_path / "colmap") == medium_report.UNKNOWN_UNIT
-
-
-# ------------------------------------------------------------------ the GPU check, without a GPU
-
-
-def load_gpu_check():
-    import importlib.util
-
-    path = Path(__file__).parents[1] / "scripts" / "gpu_check.py"
-    spec = importlib.util.spec_from_file_location("gpu_check", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_gpu_check_stops_with_one_line_without_cuda_or_tiny_cuda_nn(monkeypatch, capsys):
-    gpu_check = load_gpu_check()
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    assert gpu_check.main([]) == 1
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "no CUDA GPU" in err
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    monkeypatch.setitem(sys.modules, "tinycudann", None)  # import fails
-    assert gpu_check.main([]) == 1
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "tiny-cuda-nn is not usable" in err
-
-
-def test_gpu_check_matches_nerfacto_to_the_full_method():
-    import dataclasses
-
-    from nerfstudio.models.nerfacto import NerfactoModelConfig
-
-    from seathru_nerfstudio.bench.methods import MATCHED_NERFACTO_KEEPS_OWN
-    from seathru_nerfstudio.config import seathru_nerf_config
-
-    seathru = seathru_nerf_config()
-    nerfacto = load_gpu_check().matched_full_nerfacto(seathru)
-    assert type(nerfacto.pipeline.model) is NerfactoModelConfig
-    for f in dataclasses.fields(NerfactoModelConfig):
-        if f.init and f.name != "_target" and f.name not in MATCHED_NERFACTO_KEEPS_OWN:
-            assert getattr(nerfacto.pipeline.model, f.name) == getattr(seathru.pipeline.model, f.name), f.name
-    assert nerfacto.pipeline.datamanager.train_num_rays_per_batch == 16384
-    assert nerfacto.mixed_precision == seathru.mixed_precision and nerfacto.optimizers == seathru.optimizers
 
 
 def test_trim_mesh_names_a_missing_or_unusable_input(run, tmp_path, capsys):
