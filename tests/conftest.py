@@ -126,7 +126,7 @@ def background_job(tmp_path_factory) -> Callable[[Callable[[Path], Any]], Any]:
             future: Future = Future()
             try:
                 future.set_result(job(tmp_path_factory.mktemp(job.__name__)))
-            except BaseException as error:  # noqa: BLE001 - kept for every test that asks, as a started job's is
+            except Exception as error:  # noqa: BLE001 - kept for every test that asks, as a started job's is
                 future.set_exception(error)
             _jobs[job] = future
         return _jobs[job].result()
