@@ -20,6 +20,9 @@
   folder that a test module lists in its ``BACKGROUND_JOBS`` (work that only starts CLIs and
   waits for them: a training run to kill, a two-process run). The listed jobs start at collection,
   one after the other on a thread of their own, so that they run on the core the tests leave free.
+  A module's ``TINY_RUN_JOBS`` are the same for work on the tiny run: functions of the run
+  (``tiny_trained_run``'s dict) and a fresh folder, queued on the tiny run's thread after
+  ``ns-eval`` (a viewer to start and drive, a video to render with the ``ns-render`` CLI).
 
 Every process of the suite computes on one thread (``OMP_NUM_THREADS=1`` unless set, and
 ``torch.set_num_threads(1)`` here): on a 2-core machine torch's two threads wait on each other
@@ -42,7 +45,7 @@ import os
 import sys
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import Any, Callable, Dict
+from typing import Any, Callable, Dict, Sequence
 
 import pytest
 
@@ -64,9 +67,10 @@ TRAINED_RUN_USERS = {"tiny_trained_run", "tiny_run", "ns_eval_results", "tiny_pi
 _background: Dict[str, Future] = {}
 
 
-def _start_in_background(root: Path) -> None:
-    """Train the tiny run, then run ``ns-eval`` on it, one after the other on a thread of this
-    process that only waits for the CLIs (``_background["run"]``, ``_background["eval"]``)."""
+def _start_in_background(root: Path, tmp_path_factory, run_jobs: Sequence[Callable[[dict, Path], Any]] = ()) -> None:
+    """Train the tiny run, then run ``ns-eval`` on it, then ``run_jobs`` (test modules'
+    ``TINY_RUN_JOBS``), one after the other on a thread of this process that only waits for the
+    CLIs (``_background["run"]``, ``_background["eval"]``, ``_jobs[job]``)."""
     worker = ThreadPoolExecutor(1, thread_name_prefix="tiny_trained_run")
 
     def evaluate() -> Dict[str, float]:
@@ -76,8 +80,13 @@ def _start_in_background(root: Path) -> None:
         tiny_checkpoint.run(tiny_checkpoint.BIN / "ns-eval", "--load-config", config, "--output-path", output, cwd=output.parent)
         return json.loads(output.read_text())["results"]
 
+    def on_the_run(job: Callable[[dict, Path], Any]) -> Any:
+        return job(_background["run"].result(), tmp_path_factory.mktemp(job.__name__))
+
     _background["run"] = worker.submit(tiny_checkpoint.train_tiny, root)
     _background["eval"] = worker.submit(evaluate)
+    for job in run_jobs:
+        _jobs[job] = worker.submit(on_the_run, job)
     worker.shutdown(wait=False)
 
 
@@ -91,23 +100,26 @@ def _start_bench(name: str, root: Path) -> None:
     worker.shutdown(wait=False)
 
 
-_jobs: Dict[Callable[[Path], Any], Future] = {}
-"""The futures of the test modules' ``BACKGROUND_JOBS``, by job."""
+_jobs: Dict[Callable[..., Any], Future] = {}
+"""The futures of the test modules' ``BACKGROUND_JOBS`` and ``TINY_RUN_JOBS``, by job."""
 
 
 def pytest_collection_finish(session) -> None:
     """Start the tiny run and the bench runs as soon as a collected test needs them: their CLIs run
-    on one thread each, the tests meanwhile on the other core. Then queue the collected modules'
-    ``BACKGROUND_JOBS`` on one more thread, in the order their modules run."""
+    on one thread each, the tests meanwhile on the other core; the collected modules'
+    ``TINY_RUN_JOBS`` follow the tiny run on its thread. Then queue their ``BACKGROUND_JOBS`` on
+    one more thread, in the order their modules run."""
     if session.config.option.collectonly:
         return
     used = set().union(*(set(getattr(item, "fixturenames", ())) for item in session.items))
     for name in BENCH_RUNS:
         if name in used:
             _start_bench(name, session.config._tmp_path_factory.mktemp(name))
-    if TRAINED_RUN_USERS & used:
-        _start_in_background(session.config._tmp_path_factory.mktemp("tiny_trained_run"))
     modules = dict.fromkeys(getattr(item, "module", None) for item in session.items)
+    run_jobs = [job for module in modules for job in getattr(module, "TINY_RUN_JOBS", ())]
+    if TRAINED_RUN_USERS & used or run_jobs:
+        factory = session.config._tmp_path_factory
+        _start_in_background(factory.mktemp("tiny_trained_run"), factory, run_jobs)
     jobs = [job for module in modules for job in getattr(module, "BACKGROUND_JOBS", ())]
     if jobs:
         lane = ThreadPoolExecutor(1, thread_name_prefix="background_jobs")
@@ -117,15 +129,17 @@ def pytest_collection_finish(session) -> None:
 
 
 @pytest.fixture(scope="session")
-def background_job(tmp_path_factory) -> Callable[[Callable[[Path], Any]], Any]:
-    """``background_job(job)``: the result of ``job`` (listed in its module's ``BACKGROUND_JOBS``),
-    waited for; a job that was not started at collection runs here, once."""
+def background_job(tmp_path_factory, request) -> Callable[[Callable[..., Any]], Any]:
+    """``background_job(job)``: the result of ``job`` (listed in its module's ``BACKGROUND_JOBS``
+    or ``TINY_RUN_JOBS``), waited for; a job that was not started at collection runs here, once."""
 
-    def result(job: Callable[[Path], Any]) -> Any:
+    def result(job: Callable[..., Any]) -> Any:
         if job not in _jobs:
+            on_the_run = job in getattr(sys.modules[job.__module__], "TINY_RUN_JOBS", ())
             future: Future = Future()
             try:
-                future.set_result(job(tmp_path_factory.mktemp(job.__name__)))
+                folder = tmp_path_factory.mktemp(job.__name__)
+                future.set_result(job(request.getfixturevalue("tiny_trained_run"), folder) if on_the_run else job(folder))
             except Exception as error:  # noqa: BLE001 - kept for every test that asks, as a started job's is
                 future.set_exception(error)
             _jobs[job] = future
@@ -148,7 +162,7 @@ def tiny_trained_run(tmp_path_factory) -> Dict[str, Path]:
     ``pytest`` run through ``seathru-synth`` and ``ns-train`` (:func:`tiny_checkpoint.train_tiny`),
     started in the background when the tests were collected."""
     if "run" not in _background:  # not seen at collection (requested dynamically)
-        _start_in_background(tmp_path_factory.mktemp("tiny_trained_run"))
+        _start_in_background(tmp_path_factory.mktemp("tiny_trained_run"), tmp_path_factory)
     return _background["run"].result()
 
 

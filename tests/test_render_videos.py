@@ -10,7 +10,7 @@
   half is the video in the water, its right half the clean video, and the two differ.
 
 ``ns-render`` runs in-process through its entry point (``ns_render``), and the CLI once, in a
-subprocess, in parallel. Needs ffmpeg and PyAV.
+subprocess, as soon as the tiny run is trained (``TINY_RUN_JOBS``). Needs ffmpeg and PyAV.
 """
 
 from __future__ import annotations
@@ -88,30 +88,35 @@ def out_dir(tiny_run, tmp_path_factory):
     return tmp_path_factory.mktemp("render")
 
 
-@pytest.fixture(scope="module")
-def path_cli(tiny_run, out_dir):
-    """The real ns-render CLI rendering the camera path, started first so it runs while the
-    in-process renders do."""
-    path = out_dir / "camera_path.json"
+def camera_path_video(tiny_run: dict, folder: Path) -> dict:
+    """The real ns-render CLI rendering the camera path into ``folder``: ``{"returncode",
+    "video", "log"}``. Listed in ``TINY_RUN_JOBS``: the suite runs it as soon as the tiny run is
+    trained (conftest's ``background_job``)."""
+    path = folder / "camera_path.json"
     path.write_text(json.dumps(camera_path(tiny_run["scene"], tiny_run["config"].parent)))
-    video = out_dir / "cli" / "path.mp4"
-    log = open(out_dir / "ns-render.log", "w")
-    proc = tiny_checkpoint.start_group(
-        [
-            tiny_checkpoint.BIN / "ns-render", "camera-path",
-            "--load-config", tiny_run["config"],
-            "--camera-path-filename", path,
-            "--output-path", video,
-            "--rendered-output-names", *PATH_OUTPUTS,
-        ],
-        cwd=out_dir, env=tiny_checkpoint.quiet_env(), stdout=log, stderr=subprocess.STDOUT,
-    )  # fmt: skip
-    yield {"proc": proc, "video": video, "log": out_dir / "ns-render.log"}
-    tiny_checkpoint.stop_group(proc)  # its data-manager workers too, if it left any
-    log.close()
+    video, log_path = folder / "cli" / "path.mp4", folder / "ns-render.log"
+    with open(log_path, "w") as log:
+        proc = tiny_checkpoint.start_group(
+            [
+                tiny_checkpoint.BIN / "ns-render", "camera-path",
+                "--load-config", tiny_run["config"],
+                "--camera-path-filename", path,
+                "--output-path", video,
+                "--rendered-output-names", *PATH_OUTPUTS,
+            ],
+            cwd=folder, env=tiny_checkpoint.quiet_env(), stdout=log, stderr=subprocess.STDOUT,
+        )  # fmt: skip
+        try:
+            proc.wait(600)
+        finally:
+            tiny_checkpoint.stop_group(proc)  # its data-manager workers too, if it left any
+    return {"returncode": proc.returncode, "video": video, "log": log_path}
 
 
-def test_interpolate_renders_every_output_linear_and_display(tiny_run, tiny_pipeline, out_dir, path_cli, ns_render):
+TINY_RUN_JOBS = [camera_path_video]
+
+
+def test_interpolate_renders_every_output_linear_and_display(tiny_run, tiny_pipeline, out_dir, ns_render):
     from nerfstudio.cameras.camera_paths import get_interpolated_camera_path
 
     names = LINEAR_OUTPUTS + DISPLAY_OUTPUTS
@@ -149,7 +154,7 @@ def test_interpolate_renders_every_output_linear_and_display(tiny_run, tiny_pipe
         assert frames[name].max() >= 235, (name, frames[name].max())
 
 
-def test_spiral(tiny_run, out_dir, path_cli, ns_render):
+def test_spiral(tiny_run, out_dir, ns_render):
     spiral = out_dir / "spiral" / "clean.mp4"
     ns_render(
         "spiral", "--load-config", tiny_run["config"], "--output-path", spiral,
@@ -159,11 +164,10 @@ def test_spiral(tiny_run, out_dir, path_cli, ns_render):
     assert video.shape[0] == 3 and video.shape[1:3] == (tiny_checkpoint.HEIGHT // 2, tiny_checkpoint.WIDTH // 2), video.shape
 
 
-def test_ns_render_cli_water_split_shows_water_left_and_clean_right(path_cli):
-    proc = path_cli["proc"]
-    proc.wait(600)
-    assert proc.returncode == 0, path_cli["log"].read_text()[-5000:]
-    video = read_video(path_cli["video"])
+def test_ns_render_cli_water_split_shows_water_left_and_clean_right(background_job):
+    rendered = background_job(camera_path_video)
+    assert rendered["returncode"] == 0, rendered["log"].read_text()[-5000:]
+    video = read_video(rendered["video"])
     assert video.shape == (PATH_FRAMES, PATH_H, PATH_W * len(PATH_OUTPUTS), 3), video.shape
     shown = {name: panel.astype(np.float64) for name, panel in panels(video, PATH_OUTPUTS).items()}
     split, rgb, clean = shown["water_split"], shown["rgb_display"], shown["clean_display"]

@@ -8,7 +8,8 @@
   (``python -m seathru_nerfstudio.run_viewer``) on ``127.0.0.1`` unless told;
 * the real viewer on the checkpoint, driven by headless chromium: it opens on ``rgb_display``,
   the Water control is shown, toggling it changes the rendered pixels, density 0 renders the
-  clean image; and it listens on loopback only.
+  clean image; and it listens on loopback only. The viewer and the browser run as soon as the
+  tiny run is trained, beside the other tests (``TINY_RUN_JOBS``); the tests read what they saw.
 
 Needs chromium (``apt-get install -y chromium``) and ``pip install playwright``.
 """
@@ -19,6 +20,7 @@ import json
 import socket
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -39,13 +41,16 @@ QUALITY_METRICS = ("psnr", "ssim", "clean_psnr", "clean_ssim", "depth_abs_rel")
 MAX_RES = 64  # the viewer's smallest "Max res": cheap renders
 
 
-@pytest.fixture(scope="module")
-def viewer_process(tiny_run, tmp_path_factory):
-    """Our loopback viewer entry point on the checkpoint, default host. Started by the first
-    test so it boots while the in-process tests run; stopped at the end of the module."""
+def viewer_session(tiny_run: dict, folder: Path) -> dict:
+    """Our loopback viewer entry point on the checkpoint (default host), and what the tests read
+    of it: who listens (``hosts``), whether this machine's other interfaces refuse a connection
+    (``others``), and what headless chromium did and saw on the page (``browser``, or the error
+    that stopped it, ``browser_error``). Listed in ``TINY_RUN_JOBS``: the suite runs it as soon as
+    the tiny run is trained (conftest's ``background_job``); the viewer stops at its end."""
+    import psutil
+
     port = viewer_page.free_port()
-    log_path = tmp_path_factory.mktemp("viewer") / "viewer.log"
-    with open(log_path, "w") as log:
+    with open(folder / "viewer.log", "w") as log:
         proc = tiny_checkpoint.start_group(
             [
                 sys.executable, "-m", "seathru_nerfstudio.run_viewer",
@@ -59,13 +64,36 @@ def viewer_process(tiny_run, tmp_path_factory):
             stdout=log,
             stderr=subprocess.STDOUT,
         )  # fmt: skip
-    yield {"proc": proc, "port": port, "log": log_path}
-    tiny_checkpoint.stop_group(proc)
+    try:
+        viewer_page.wait_for_port(port, proc)
+        session = {"hosts": listening_hosts(proc.pid, port), "others": {}}
+        addresses = [
+            a.address
+            for addrs in psutil.net_if_addrs().values()
+            for a in addrs
+            if a.family == socket.AF_INET and not a.address.startswith("127.")
+        ]
+        for address in addresses:  # this machine's other interfaces: nobody should answer there
+            try:
+                socket.create_connection((address, port), timeout=2).close()
+                session["others"][address] = "answered"
+            except OSError as error:
+                session["others"][address] = f"refused: {error}"
+        try:
+            session["browser"] = drive_browser(f"http://127.0.0.1:{port}", folder)
+        except Exception as error:  # noqa: BLE001 - the browser test raises it; the loopback one does not need it
+            session["browser_error"] = error
+        return session
+    finally:
+        tiny_checkpoint.stop_group(proc)
+
+
+TINY_RUN_JOBS = [viewer_session]
 
 
 @pytest.fixture(scope="module")
-def pipeline(viewer_process, tiny_pipeline):
-    """The session's pipeline (after the viewer process has started booting), one math thread."""
+def pipeline(tiny_pipeline):
+    """The session's pipeline, one math thread."""
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     tiny_pipeline.eval()
@@ -266,8 +294,6 @@ def test_evaluation_metrics_ignore_the_controls_and_match_ns_eval(pipeline, cont
 def test_ns_viewer_defaults_to_every_interface_and_ours_to_loopback():
     """nerfstudio's ns-viewer ignores the host saved with a run (docs/viewer.md says so); our
     entry point is the same command listening on 127.0.0.1 unless --viewer.websocket-host is given."""
-    from pathlib import Path
-
     import tyro
     from nerfstudio.scripts.viewer.run_viewer import RunViewer
 
@@ -283,31 +309,23 @@ def test_ns_viewer_defaults_to_every_interface_and_ours_to_loopback():
     assert parse(RunLoopbackViewer, "--viewer.websocket-host", "0.0.0.0").viewer.websocket_host == "0.0.0.0"
 
 
-def test_our_viewer_listens_on_loopback_only(viewer_process):
-    import psutil
-
-    viewer_page.wait_for_port(viewer_process["port"], viewer_process["proc"])
-    assert listening_hosts(viewer_process["proc"].pid, viewer_process["port"]) == {"127.0.0.1"}
-    others = [
-        a.address
-        for addrs in psutil.net_if_addrs().values()
-        for a in addrs
-        if a.family == socket.AF_INET and not a.address.startswith("127.")
-    ]
-    for address in others:  # this machine's other interfaces: nobody answers there
-        with pytest.raises(OSError):
-            socket.create_connection((address, viewer_process["port"]), timeout=2).close()
+def test_our_viewer_listens_on_loopback_only(background_job):
+    session = background_job(viewer_session)
+    assert session["hosts"] == {"127.0.0.1"}
+    assert all(outcome.startswith("refused") for outcome in session["others"].values()), session["others"]
 
 
 # --- the real viewer in a browser ---------------------------------------------------------------
 
 
-def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(viewer_process, tmp_path):
+def drive_browser(url: str, folder: Path) -> dict:
+    """Open the viewer at ``url`` in headless chromium, toggle the water off and on, take the water
+    density to 0, and record what the page showed and what it was sent (screenshots in ``folder``).
+    Its assertions stop the session where a later step would only wait for a render that cannot come."""
     assert viewer_page.chromium_path(), "needs chromium (apt-get install -y chromium)"
-    viewer_page.wait_for_port(viewer_process["port"], viewer_process["proc"])
-    measured = {}
+    measured, sent = {}, {}
     with viewer_page.browser_page() as page:
-        view = viewer_page.ViewerPage(page, f"http://127.0.0.1:{viewer_process['port']}")
+        view = viewer_page.ViewerPage(page, url)
         view.open()
         view.wait_for_label("Water")
         for label in CONTROL_LABELS:
@@ -315,8 +333,8 @@ def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(viewer_pr
         assert view.slider_to_min("Max res") == MAX_RES
 
         water = view.wait_for_render(MAX_RES)
-        sent = {"water": view.last_received(MAX_RES)}
-        page.screenshot(path=str(tmp_path / "1-water.png"))
+        sent["water"] = view.last_received(MAX_RES)
+        page.screenshot(path=str(folder / "1-water.png"))
         assert view.dropdown_value("Output type") == "rgb_display"
         options = view.dropdown_options("Output type")
         assert set(LISTED_OUTPUTS) <= set(options), options
@@ -324,7 +342,7 @@ def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(viewer_pr
         assert view.click_checkbox("Water") is False
         no_water = view.wait_for_render(MAX_RES, previous=water)
         sent["no_water"] = view.last_received(MAX_RES)
-        page.screenshot(path=str(tmp_path / "2-no-water.png"))
+        page.screenshot(path=str(folder / "2-no-water.png"))
         measured["resolution_no_water"] = view.resolution()
         measured["water_vs_no_water"] = viewer_page.mean_abs_diff(water, no_water)
 
@@ -336,11 +354,19 @@ def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(viewer_pr
         assert view.slider_to_min("Water density") == 0.0
         clear = view.wait_for_render(MAX_RES, previous=water_again)
         sent["density0"] = view.last_received(MAX_RES)
-        page.screenshot(path=str(tmp_path / "3-density-0.png"))
+        page.screenshot(path=str(folder / "3-density-0.png"))
         measured["resolution_at_density0"] = view.resolution()
         measured["density0_vs_no_water"] = viewer_page.mean_abs_diff(clear, no_water)
         measured["density0_vs_water"] = viewer_page.mean_abs_diff(clear, water_again)
         measured["images_received"] = len(view.received)
+    return {"measured": measured, "sent": sent}
+
+
+def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(background_job, tmp_path):
+    session = background_job(viewer_session)
+    if "browser_error" in session:
+        raise session["browser_error"]  # an assertion of the session's, or what stopped it
+    measured, sent = session["browser"]["measured"], session["browser"]["sent"]
 
     sent_diff = {f"sent_{a}_vs_{b}": viewer_page.mean_abs_diff(sent[a], sent[b]) for a, b in (("water", "water_again"), ("density0", "no_water"), ("water", "no_water"))}
     (tmp_path / "measured.json").write_text(json.dumps({**measured, **sent_diff}, indent=2))
