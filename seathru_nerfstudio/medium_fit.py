@@ -42,14 +42,10 @@ from torch import Tensor
 from nerfstudio.utils.rich_utils import CONSOLE
 
 from seathru_nerfstudio.medium_field import tie_matrix
+from seathru_nerfstudio.medium_fit_errors import LOG_DENSITY_LIMIT, log_density_errors, tied_log_density_errors
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.oracles import replace_with_truth
 from seathru_nerfstudio.phases import TrainingPhases
-
-
-LOG_DENSITY_LIMIT = 20.7
-"""The fitted densities are clamped to ``e^{±20.7}`` ≈ 1e-9 to 1e9 per world unit: a channel the
-observations say nothing about may run off towards 0 or infinity."""
 
 
 CAUCHY_TUNING = 2.385
@@ -104,59 +100,6 @@ class DensityFit(NamedTuple):
     residual: float
     attenuation_log_error: Float[Tensor, "3"]
     backscatter_log_error: Float[Tensor, "3"]
-
-
-def log_density_errors(
-    squared_error: Float[Tensor, "3"],
-    hessian: Float[Tensor, "6 6"],
-    num_points: int,
-) -> tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
-    """Standard errors of ``(ln β_D, ln β_B)`` per channel from the curvature of the residual.
-
-    ``squared_error[c]`` is channel c's sum of squared residuals ``S_c`` at the fit and
-    ``hessian`` the Hessian of ``Σ_c S_c`` in ``(ln β_D, ln β_B)`` (block-diagonal: the channels
-    do not interact). Gauss–Newton gives ``cov_c = 2 σ_c² H_c⁻¹`` (``H = 2 JᵀJ``). A point's
-    residuals across its views share its errors (its colour, its position), so ``σ_c² = S_c /
-    num_points``: one independent residual per point, not per observation. A block that is not
-    positive definite (a flat direction) gets the largest error, ``2 × LOG_DENSITY_LIMIT``."""
-    worst = 2 * LOG_DENSITY_LIMIT
-    attenuation_error = torch.full((3,), worst, dtype=torch.float64)
-    backscatter_error = attenuation_error.clone()
-    for c in range(3):
-        block = hessian[[c, c + 3]][:, [c, c + 3]].double()
-        determinant = block[0, 0] * block[1, 1] - block[0, 1] ** 2
-        if not (torch.isfinite(block).all() and block[0, 0] > 0 and determinant > 0) or num_points < 1:
-            continue
-        # 2 S / n · H⁻¹'s diagonal, divided last: S = 0 over a tiny determinant gives 0, never 0·inf
-        variance = 2.0 * squared_error[c].double() / num_points * torch.stack([block[1, 1], block[0, 0]]) / determinant
-        errors = torch.sqrt(torch.clamp(variance, min=0.0)).clamp(max=worst)
-        attenuation_error[c], backscatter_error[c] = errors[0], errors[1]
-    return attenuation_error, backscatter_error
-
-
-def tied_log_density_errors(
-    squared_error: Float[Tensor, "3"],
-    channel_hessians: Float[Tensor, "3 K K"],
-    tie: Float[Tensor, "6 K"],
-    num_points: int,
-) -> tuple[Float[Tensor, "3"], Float[Tensor, "3"]]:
-    """:func:`log_density_errors` where channels share free log-densities (``tie``, see
-    :func:`tie_matrix`): the channels' information adds up, ``cov = (Σ_c H_c / (2 σ_c²))⁻¹`` with
-    ``σ_c² = S_c / num_points`` and ``H_c`` the Hessian of ``S_c`` in the free parameters; each
-    density gets the error of the free parameter it is. Untied, this is :func:`log_density_errors`
-    block by block. Not positive definite: every density gets ``2 × LOG_DENSITY_LIMIT``."""
-    worst = torch.full((6,), 2 * LOG_DENSITY_LIMIT, dtype=torch.float64)
-    hessians, squared = channel_hessians.double(), squared_error.double()
-    if num_points >= 1 and torch.isfinite(hessians).all() and torch.isfinite(squared).all():
-        # S_c = 0 (exact data) is floored far below any real residual: its channel then pins the fit
-        variance = torch.clamp(squared, min=1e-30 * num_points) / num_points
-        information = (hessians / (2.0 * variance[:, None, None])).sum(dim=0)
-        factor, singular = torch.linalg.cholesky_ex(information)
-        if int(singular) == 0:
-            covariance = torch.cholesky_inverse(factor)
-            per_density = torch.einsum("dk,kl,dl->d", tie.double(), covariance, tie.double())
-            worst = torch.sqrt(torch.clamp(per_density, min=0.0)).clamp(max=2 * LOG_DENSITY_LIMIT)
-    return worst[:3], worst[3:]
 
 
 NEWTON_STEP_LIMIT = 1e-12
@@ -307,6 +250,38 @@ def fit_densities(
     return DensityFit(densities[:3], densities[3:], final, *errors)
 
 
+VEIL_STEP = 0.05
+""":func:`veil_sensitivity`'s central difference: the veil scaled by ``e^{±0.05}`` (±5%)."""
+
+
+def veil_sensitivity(
+    ranges: Float[Tensor, "P V"],
+    colours: Float[Tensor, "P V 3"],
+    veil: Float[Tensor, "3"],
+    fit: DensityFit,
+    tie: str = "seathru",
+) -> Float[Tensor, "3"]:
+    """``d ln β_B / d ln B∞`` per channel (dimensionless): how far ``β_B`` moves when the veil it was
+    fitted under is off. The SfM observations fix the backscatter's rise over the ranges they span,
+    about ``B∞ β_B`` at short range, and hardly ``B∞`` itself (the residual moves by 0.2–2% over a
+    veil ×0.8–1.2 on path-traced water; docs/history.md, 2026-11-29), so an error in ``B∞`` passes
+    into ``β_B``: one for one at short range (``−1``), more where the observed backscatter
+    saturates. On path-traced coastal water it is −2.0, −1.6, −1.5 and on turbid water −5.5, −2.0,
+    −2.9 (R, G, B): a veil 10% high there puts ``β_B`` 15–55% low.
+
+    ``fit`` (:func:`fit_densities` of ``ranges``, ``colours`` under ``veil``, tied by ``tie``) is
+    refitted under the whole veil scaled by ``e^{±h}``, ``h =`` :data:`VEIL_STEP`, from its own
+    densities: ``(ln β_B(+h) − ln β_B(−h)) / 2h``. The refits are the whole robust fit
+    (reweighting included), so this is how the estimate itself answers an error in the veil,
+    not only the model's. Two fits' cost (a second or two on a few thousand observations)."""
+    scale = torch.exp(torch.tensor(VEIL_STEP, dtype=torch.float64))
+    refits = [
+        fit_densities(ranges, colours, veil.double() * factor, fit.attenuation, fit.backscatter, tie=tie)
+        for factor in (scale, 1.0 / scale)
+    ]
+    return (torch.log(refits[0].backscatter) - torch.log(refits[1].backscatter)) / (2 * VEIL_STEP)
+
+
 def fit_replaces(fit: DensityFit, max_log_error: float) -> Bool[Tensor, "3"]:
     """Per channel, whether the fit's densities replace the trained ones: where the fit's standard
     error ``s`` of ``ln β_D`` is at most ``max_log_error`` (``research.medium_fit_max_log_error``;
@@ -419,6 +394,9 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
     medium = model.medium_field
     densities, veil, fit = fit_model_medium(model, table, tie=model.medium_model)
     model.fit_log_error.copy_(fit.attenuation_log_error.to(model.fit_log_error))
+    model.fit_backscatter_log_error.copy_(fit.backscatter_log_error.to(model.fit_backscatter_log_error))
+    sensitivity = veil_sensitivity(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit, model.medium_model)
+    model.backscatter_veil_sensitivity.copy_(torch.nan_to_num(sensitivity, nan=0.0, posinf=0.0, neginf=0.0).to(model.backscatter_veil_sensitivity))
     uncertain = ~fit_replaces(fit, config.research.medium_fit_max_log_error)
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
     if uncertain.all() and model.fit_oracle is None:  # nothing to replace: leave the parameters and Adam alone
@@ -444,6 +422,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
         f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({model.medium_model} tie)[/] "
         f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
         f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
-        f"standard error of ln beta_D {show(fit.attenuation_log_error)}"
+        f"standard error of ln beta_D {show(fit.attenuation_log_error)}, of ln beta_B {show(fit.backscatter_log_error)}; "
+        f"beta_B moves {show(sensitivity)} times any relative error of B_inf"
         + (f", kept the trained values of channel(s) {uncertain.nonzero().flatten().tolist()}" if uncertain.any() else "")
     )

@@ -16,7 +16,9 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   before), with the configured one.
 * ``fit``: where the medium fit ran, the standard error of ``ln beta_D`` per channel and, to
   first order (``SE(beta) = beta SE(ln beta)``), of ``beta_D`` in 1/world unit, and which
-  densities are held at their fit.
+  densities are held at their fit; that of ``ln beta_B`` given the veil, and
+  ``ln_beta_B_per_ln_B_inf``, how many per cent ``beta_B`` moves per per cent of error in ``B_inf``
+  (:func:`~seathru_nerfstudio.medium_fit.veil_sensitivity`; usually the larger error of the two).
 * ``B_inf_rise`` (scene medium, where the open water was read brighter looking up): the veil of a
   ray whose unit direction has component ``u`` along ``vertical`` (the scene frame's up, from the
   training cameras: :mod:`~seathru_nerfstudio.vertical`) is
@@ -129,6 +131,10 @@ def _fit(model: Any, beta_d: Tensor) -> Optional[Dict[str, Any]]:
         "standard_error_ln_beta_D": _numbers(log_error),
         "standard_error_beta_D": _numbers(beta_d * log_error),
     }
+    backscatter_error = getattr(model, "fit_backscatter_log_error", None)
+    if backscatter_error is not None and bool((backscatter_error >= 0).all()):  # -1: a checkpoint from before it was kept
+        fit["standard_error_ln_beta_B"] = _numbers(backscatter_error.detach().double().cpu())
+        fit["ln_beta_B_per_ln_B_inf"] = _numbers(model.backscatter_veil_sensitivity.detach().double().cpu())
     if held is not None:
         fit["held_beta_D"] = [bool(v) for v in held[:3]]
         fit["held_beta_B"] = [bool(v) for v in held[3:]]
@@ -217,6 +223,8 @@ def summary_line(report: Dict[str, Any]) -> str:
     fit = report.get("fit")
     if fit and fit.get("standard_error_ln_beta_D") is not None:
         line += f"; fit: standard error of ln beta_D {show(fit['standard_error_ln_beta_D'])}"
+    if fit and fit.get("ln_beta_B_per_ln_B_inf") is not None:
+        line += f", of ln beta_B {show(fit['standard_error_ln_beta_B'])}; beta_B moves {show(fit['ln_beta_B_per_ln_B_inf'])} times an error of B_inf"
     if report["unit"] != METRE:
         line += " (world unit of unknown scale)"
     return line

@@ -87,6 +87,10 @@ class SeathruModel(NerfactoModel):
         self.register_buffer("fit_log_error", torch.full((3,), -1.0, dtype=torch.float64))
         """The medium fit's standard error of ``ln beta_D`` per channel (-1: no fit yet; finite, as
         every checkpointed value must be)."""
+        self.register_buffer("fit_backscatter_log_error", torch.full((3,), -1.0, dtype=torch.float64))
+        """The same for ``ln beta_B`` (-1: no fit yet, or a checkpoint written before it was kept)."""
+        self.register_buffer("backscatter_veil_sensitivity", torch.zeros(3, dtype=torch.float64))
+        """``d ln beta_B / d ln B_inf`` at the fit (:func:`~seathru_nerfstudio.medium_fit.veil_sensitivity`)."""
         self.auto_choice = AutoMediumChoice(self) if self.config.medium_model == "auto" else None
         if not self.config.object_view_dependent:
             self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)

@@ -11,16 +11,15 @@ from seathru_nerfstudio.medium_fit import (
     DensityFit,
     fit_replaces,
     explained_variation,
-    LOG_DENSITY_LIMIT,
     CAUCHY_TUNING,
     MAD_TO_SIGMA,
     best_colours,
     cauchy_weights,
     fit_densities,
-    log_density_errors,
     newton_polished,
-    tied_log_density_errors,
+    veil_sensitivity,
 )
+from seathru_nerfstudio.medium_fit_errors import LOG_DENSITY_LIMIT, log_density_errors, tied_log_density_errors
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumOutputs, tie, tie_matrix
 
 BETA_D = torch.tensor([1.3, 1.2, 0.9], dtype=torch.float64)
@@ -293,6 +292,30 @@ def test_the_errors_shrink_with_more_points_and_grow_without_range_spread():
     flat[torch.isnan(ranges)] = float("nan")
     one_range = fit_densities(flat, images, VEIL, s, s)
     assert torch.all(one_range.attenuation_log_error > 10 * fit.attenuation_log_error), one_range.attenuation_log_error
+
+
+def test_beta_b_follows_the_veil_one_for_one_at_short_range_and_more_as_the_backscatter_saturates():
+    """Near the camera the backscatter is ``B∞ β_B z``: the observations fix the product, so a veil
+    ``k`` times too bright gives ``β_B / k``, ``d ln β_B / d ln B∞ = −1`` up to terms of order
+    ``β_B z``. Farther, where the backscatter saturates, no ``β_B`` makes up for a veil error one for
+    one (a single range needs ``−(e^x − 1) / x``, ``x = β_B z``): the sensitivity grows with the range."""
+    ranges, _, colour = _observations()
+    s = torch.full((3,), 1.0, dtype=torch.float64)
+    sensitivities = []
+    for scale in (0.02, 0.1, 1.0):  # ranges 0.018-0.066, 0.09-0.33 and 0.9-3.3 world units
+        near = ranges * scale
+        images = _images_under(near, colour, BETA_D, BETA_B)
+        fit = fit_densities(near, images, VEIL, s, s)
+        sensitivities.append(veil_sensitivity(near, images, VEIL, fit))
+    shortest = sensitivities[0]
+    largest_x = BETA_B * torch.nan_to_num(ranges * 0.02, nan=0.0).max()
+    assert torch.all((shortest + 1).abs() < largest_x), (shortest, largest_x)
+    assert torch.all(sensitivities[0] > sensitivities[1]) and torch.all(sensitivities[1] > sensitivities[2]), sensitivities
+    nearest_x = BETA_B * torch.nan_to_num(ranges, nan=float("inf")).min()  # x at the nearest observation
+    assert torch.all(sensitivities[2] < -torch.expm1(nearest_x) / nearest_x), sensitivities[2]  # past a single range's
+    fog = fit_densities(ranges, _images_under(ranges, colour, BETA_D, BETA_B), VEIL, s, s, tie="fog")
+    tied = veil_sensitivity(ranges, _images_under(ranges, colour, BETA_D, BETA_B), VEIL, fog, tie="fog")
+    assert torch.isfinite(tied).all() and torch.all(tied == tied[0])  # one grey β_B moves as one
 
 
 def _images_under(ranges, colour, beta_d, beta_b):

@@ -27,6 +27,13 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     model.fit_log_error.copy_(torch.tensor([0.01, 0.02, 0.2], dtype=torch.float64))
     fit = medium_report.medium_report(model)["fit"]
     assert fit["standard_error_beta_D"] == pytest.approx((tied * torch.tensor([0.01, 0.02, 0.2])).tolist())
+    assert "standard_error_ln_beta_B" not in fit  # -1: a checkpoint from before beta_B's were kept
+    model.fit_backscatter_log_error.copy_(torch.tensor([0.3, 0.1, 0.05], dtype=torch.float64))
+    model.backscatter_veil_sensitivity.copy_(torch.tensor([-5.5, -2.0, -2.9], dtype=torch.float64))
+    report = medium_report.medium_report(model)
+    assert report["fit"]["standard_error_ln_beta_B"] == pytest.approx([0.3, 0.1, 0.05])
+    assert report["fit"]["ln_beta_B_per_ln_B_inf"] == pytest.approx([-5.5, -2.0, -2.9])
+    assert "beta_B moves -5.5 -2 -2.9 times an error of B_inf" in report["summary"]
 
     assert "B_inf_rise" not in report  # no rise set
     water = tiny_model(medium_model="seathru").eval()

@@ -313,11 +313,14 @@ def test_medium_fit_step_sets_the_densities_to_the_fit_of_the_sfm_observations(c
     with pytest.raises(ValueError, match="medium-fit-max-log-error"):
         tiny_model(medium_fit_max_log_error=float("nan"))
     # the fitted channels are held; the hold and the fit's errors survive a checkpoint
-    assert m.densities_fitted.all() and (m.fit_log_error >= 0).all()
+    assert m.densities_fitted.all() and (m.fit_log_error >= 0).all() and (m.fit_backscatter_log_error >= 0).all()
+    assert torch.all(m.backscatter_veil_sensitivity < 0)  # a brighter veil, a smaller beta_B
     held = m
     reloaded = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5)
     reloaded.load_state_dict(held.state_dict())
     assert reloaded.densities_fitted.all() and torch.equal(reloaded.fit_log_error, held.fit_log_error)
+    assert torch.equal(reloaded.fit_backscatter_log_error, held.fit_backscatter_log_error)
+    assert torch.equal(reloaded.backscatter_veil_sensitivity, held.backscatter_veil_sensitivity)
     # the fit ties the densities as the medium model in use renders them; clear air has none to fit
     fog = tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, medium_fit_step=10, medium_first_steps=5, medium_model="fog")
     capsys.readouterr()
