@@ -115,7 +115,8 @@ def pytest_collection_finish(session) -> None:
     for name in BENCH_RUNS:
         if name in used:
             _start_bench(name, session.config._tmp_path_factory.mktemp(name))
-    modules = dict.fromkeys(getattr(item, "module", None) for item in session.items)
+    # only modules with a collected test that reads a job (``-m "not slow"`` may have left none)
+    modules = dict.fromkeys(item.module for item in session.items if "background_job" in getattr(item, "fixturenames", ()))
     run_jobs = [job for module in modules for job in getattr(module, "TINY_RUN_JOBS", ())]
     if TRAINED_RUN_USERS & used or run_jobs:
         factory = session.config._tmp_path_factory

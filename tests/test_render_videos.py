@@ -164,6 +164,7 @@ def test_spiral(tiny_run, out_dir, ns_render):
     assert video.shape[0] == 3 and video.shape[1:3] == (tiny_checkpoint.HEIGHT // 2, tiny_checkpoint.WIDTH // 2), video.shape
 
 
+@pytest.mark.slow  # reads a TINY_RUN_JOBS result: the tiny run is trained for it
 def test_ns_render_cli_water_split_shows_water_left_and_clean_right(background_job):
     rendered = background_job(camera_path_video)
     assert rendered["returncode"] == 0, rendered["log"].read_text()[-5000:]

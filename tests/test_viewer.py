@@ -309,6 +309,7 @@ def test_ns_viewer_defaults_to_every_interface_and_ours_to_loopback():
     assert parse(RunLoopbackViewer, "--viewer.websocket-host", "0.0.0.0").viewer.websocket_host == "0.0.0.0"
 
 
+@pytest.mark.slow  # reads a TINY_RUN_JOBS result: the tiny run is trained for it
 def test_our_viewer_listens_on_loopback_only(background_job):
     session = background_job(viewer_session)
     assert session["hosts"] == {"127.0.0.1"}
@@ -362,6 +363,7 @@ def drive_browser(url: str, folder: Path) -> dict:
     return {"measured": measured, "sent": sent}
 
 
+@pytest.mark.slow  # reads a TINY_RUN_JOBS result: the tiny run is trained for it
 def test_browser_water_toggle_changes_pixels_and_density_zero_is_clean(background_job, tmp_path):
     session = background_job(viewer_session)
     if "browser_error" in session:
