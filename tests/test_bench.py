@@ -80,6 +80,25 @@ def test_medium_error_in_clear_air_has_no_relative_error():
     assert err["beta_D"]["abs_mean"] == pytest.approx(0.2)
 
 
+def test_the_veils_share_of_the_backscatter_error_is_its_error_to_the_sensitivity():
+    """``(B∞ / B∞_ref)^s − 1``: one for one at ``s = −1`` (a veil 10% high, β_B 1/1.1 of the truth),
+    nothing at ``s = 0`` or under the right veil, squared at ``s = −2``; undefined without a veil.
+    The bench puts it beside each run's β_B error against the scene's reference."""
+    explained = scoring.backscatter_error_from_veil([-1.0, 0.0, -2.0], [0.22, 0.3, 0.05], [0.2, 0.1, 0.1])
+    assert explained == pytest.approx([1 / 1.1 - 1, 0.0, 3.0])
+    assert scoring.backscatter_error_from_veil([-3.0], [0.4], [0.4]) == [0.0]
+    assert math.isnan(scoring.backscatter_error_from_veil([-1.0], [0.0], [0.2])[0])
+    medium = {"beta_D": [1.0, 1.0, 1.0], "beta_B": [0.5, 0.8, 1.0], "B_inf": [0.22, 0.2, 0.2]}
+    reference = {"beta_D": [1.0, 1.0, 1.0], "beta_B": [1.0, 1.0, 1.0], "B_inf": [0.2, 0.2, 0.2]}
+    record = {"medium": medium, "beta_B_per_B_inf": [-5.0, -1.0, -1.0]}
+    results = {"ceilings": {"reef": {"reference": reference}}, "runs": [{"scene": "reef", "method": "m", "evals": [record]}]}
+    scoring.reference_errors(results)
+    assert record["beta_B_error_from_veil"] == pytest.approx([1.1**-5 - 1, 0.0, 0.0])
+    (line,) = report.veil_lines(results)[2:]
+    assert line == "| reef | `m` | -50, -20, +0 | +10, +0, +0 | -5.00, -1.00, -1.00 | -38, +0, +0 |"
+    assert report.veil_lines({"runs": [{"scene": "reef", "method": "m", "evals": [{"medium": medium}]}]}) == []
+
+
 def test_medium_per_metre_converts_densities_with_the_dataparser_scale_and_takes_medians():
     # 101 rays; medians 0.5 (sigma per scene unit), scale 0.25 scene units per metre -> 0.125/m.
     rays = torch.linspace(0.0, 1.0, 101)[:, None].expand(101, 3)

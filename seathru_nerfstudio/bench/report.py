@@ -166,6 +166,27 @@ def ceiling_gaps(results: Dict[str, Any]) -> List[str]:
     return lines if len(lines) > 2 else []
 
 
+def veil_lines(results: Dict[str, Any]) -> List[str]:
+    """Each run's final β_B error beside the part of it that its veil's error accounts for
+    (``beta_B_error_from_veil``), as markdown lines; none where no run recorded it."""
+    lines = ["| scene | method | β_B error (R, G, B %) | B∞ error | β_B per B∞ at the fit | accounted for by the veil (%) |", "|---|---|---|---|---|---|"]
+    for run in results.get("runs", []):
+        final = run["evals"][-1] if run.get("evals") else {}
+        explained = final.get("beta_B_error_from_veil")
+        errors = _medium_errors(final)
+        if explained is None or "beta_B" not in errors:
+            continue
+        signed = [100 * (p - t) / t for p, t in zip(errors["beta_B"]["pred"], errors["beta_B"]["true"])]
+        veil = [100 * (p - t) / t for p, t in zip(errors["B_inf"]["pred"], errors["B_inf"]["true"])]
+        cells = [", ".join(f"{v:+.0f}" for v in values) for values in (signed, veil)]
+        lines.append(
+            f"| {run['scene']} | `{run['method']}` | {cells[0]} | {cells[1]} | "
+            + ", ".join(f"{v:.2f}" for v in final["beta_B_per_B_inf"]) + " | "
+            + ", ".join(f"{100 * v:+.0f}" for v in explained) + " |"
+        )
+    return lines if len(lines) > 2 else []
+
+
 def markdown_table(results: Dict[str, Any]) -> str:
     """Final-evaluation table (one row per scene x method) and the per-evaluation curves."""
     unit = "s" if results.get("budget_kind") == "seconds" else "iterations"
@@ -227,6 +248,10 @@ def markdown_table(results: Dict[str, Any]) -> str:
     gaps = ceiling_gaps(results)
     if gaps:
         lines += ["", "### Gaps to the ceiling (final evaluation)", ""] + gaps
+    veil = veil_lines(results)
+    if veil:
+        lines += ["", "### β_B and the veil (final evaluation)", "", "Signed errors against the reference; the last column is "
+                  "`(B∞ / B∞_ref)^s − 1`, the β_B error the veil's own error accounts for at the fit's sensitivity `s`.", ""] + veil
     codes = [run.get("code") for run in results.get("runs", [])]
     if codes and all(codes):
         dirty = sorted({f for code in codes for f in code.get("dirty_files", [])})

@@ -65,17 +65,36 @@ def medium_error(
     return out
 
 
+def backscatter_error_from_veil(
+    sensitivity: Sequence[float], veil: Sequence[float], reference_veil: Sequence[float]
+) -> List[float]:
+    """The relative error of ``β_B`` per channel that the veil's own error accounts for:
+    ``(B∞ / B∞_ref)^s − 1``, ``s = d ln β_B / d ln B∞`` at the medium fit
+    (:func:`~seathru_nerfstudio.medium_fit.veil_sensitivity`), linear in ``ln B∞``. What is left
+    of a run's ``β_B`` error beyond it is the fit's own. ``nan`` where a veil is not positive."""
+    return [
+        math.exp(s * math.log(v / r)) - 1.0 if v > 0 and r > 0 else float("nan")
+        for s, v, r in zip(sensitivity, veil, reference_veil)
+    ]
+
+
 def reference_errors(results: Dict[str, object]) -> None:
     """Give every evaluation with a medium its error against its scene's ceiling reference
     (``medium_error_reference``: β_D against the truth, β_B and B∞ against the ceiling's best
     fit; :mod:`seathru_nerfstudio.bench.ceiling_scene`), where ``results["ceilings"]`` has one.
-    In place; doing it again changes nothing."""
+    Where the run's medium fit recorded ``beta_B_per_B_inf``, also ``beta_B_error_from_veil``
+    (:func:`backscatter_error_from_veil` against the reference veil). In place; doing it again
+    changes nothing."""
     ceilings = results.get("ceilings") or {}
     for run in results.get("runs", []):  # type: ignore[union-attr]
         reference = (ceilings.get(run["scene"]) or {}).get("reference")  # type: ignore[union-attr]
         for record in run.get("evals", []) if reference else []:
             if record.get("medium") is not None:
                 record["medium_error_reference"] = medium_error(record["medium"], reference)
+                if record.get("beta_B_per_B_inf") is not None:
+                    record["beta_B_error_from_veil"] = backscatter_error_from_veil(
+                        record["beta_B_per_B_inf"], record["medium"]["B_inf"], reference["B_inf"]
+                    )
 
 
 def view_metrics(

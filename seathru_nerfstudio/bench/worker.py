@@ -114,6 +114,8 @@ def evaluate(pipeline, lpips, scale: float, truth) -> Dict[str, Any]:
     record: Dict[str, Any] = {"metrics": scoring.mean_metrics(per_view), "per_view": per_view}
     if hasattr(model, "medium_model"):  # the model in use: auto's choice once it has decided
         record["medium_model"] = model.medium_model
+    if hasattr(model, "backscatter_veil_sensitivity") and bool((model.fit_backscatter_log_error >= 0).all()):
+        record["beta_B_per_B_inf"] = [float(v) for v in model.backscatter_veil_sensitivity]  # at the medium fit
     if all(media.values()):
         predicted = scoring.medium_per_metre(
             torch.cat(media["medium_rgb"]),
