@@ -88,6 +88,7 @@ def test_the_veils_share_of_the_backscatter_error_is_its_error_to_the_sensitivit
     assert explained == pytest.approx([1 / 1.1 - 1, 0.0, 3.0])
     assert scoring.backscatter_error_from_veil([-3.0], [0.4], [0.4]) == [0.0]
     assert math.isnan(scoring.backscatter_error_from_veil([-1.0], [0.0], [0.2])[0])
+    assert math.isfinite(scoring.backscatter_error_from_veil([-60.0], [1e-12], [0.5])[0])  # capped, not an overflow
     medium = {"beta_D": [1.0, 1.0, 1.0], "beta_B": [0.5, 0.8, 1.0], "B_inf": [0.22, 0.2, 0.2]}
     reference = {"beta_D": [1.0, 1.0, 1.0], "beta_B": [1.0, 1.0, 1.0], "B_inf": [0.2, 0.2, 0.2]}
     record = {"medium": medium, "beta_B_per_B_inf": [-5.0, -1.0, -1.0]}
@@ -97,6 +98,10 @@ def test_the_veils_share_of_the_backscatter_error_is_its_error_to_the_sensitivit
     (line,) = report.veil_lines(results)[2:]
     assert line == "| reef | `m` | -50, -20, +0 | +10, +0, +0 | -5.00, -1.00, -1.00 | -38, +0, +0 |"
     assert report.veil_lines({"runs": [{"scene": "reef", "method": "m", "evals": [{"medium": medium}]}]}) == []
+    clear = {"medium": medium, "beta_B_per_B_inf": [-1.0, -1.0, -1.0], "beta_B_error_from_veil": [0.1, 0.0, 0.0],
+             "medium_error": scoring.medium_error(medium, {k: [0.0, 0.0, 0.0] for k in scoring.MEDIUM_KEYS})}
+    (line,) = report.veil_lines({"runs": [{"scene": "air", "method": "m", "evals": [clear]}]})[2:]
+    assert "n/a, n/a, n/a" in line  # no relative error against a zero truth
 
 
 def test_medium_per_metre_converts_densities_with_the_dataparser_scale_and_takes_medians():

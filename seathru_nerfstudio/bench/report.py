@@ -176,13 +176,12 @@ def veil_lines(results: Dict[str, Any]) -> List[str]:
         errors = _medium_errors(final)
         if explained is None or "beta_B" not in errors:
             continue
-        signed = [100 * (p - t) / t for p, t in zip(errors["beta_B"]["pred"], errors["beta_B"]["true"])]
-        veil = [100 * (p - t) / t for p, t in zip(errors["B_inf"]["pred"], errors["B_inf"]["true"])]
-        cells = [", ".join(f"{v:+.0f}" for v in values) for values in (signed, veil)]
+        signed, veil = ([100 * (p - t) / t if t else float("nan") for p, t in zip(errors[key]["pred"], errors[key]["true"])] for key in ("beta_B", "B_inf"))
+        cells = [", ".join(_fmt(v, "{:+.0f}") for v in values) for values in (signed, veil)]
         lines.append(
             f"| {run['scene']} | `{run['method']}` | {cells[0]} | {cells[1]} | "
             + ", ".join(f"{v:.2f}" for v in final["beta_B_per_B_inf"]) + " | "
-            + ", ".join(f"{100 * v:+.0f}" for v in explained) + " |"
+            + ", ".join(_fmt(100 * v, "{:+.0f}") for v in explained) + " |"
         )
     return lines if len(lines) > 2 else []
 

@@ -65,6 +65,10 @@ def medium_error(
     return out
 
 
+MAX_LOG_FACTOR = 700.0
+""":func:`backscatter_error_from_veil` caps ``s ln(B∞ / B∞_ref)`` here: ``e^700`` is finite in float64."""
+
+
 def backscatter_error_from_veil(
     sensitivity: Sequence[float], veil: Sequence[float], reference_veil: Sequence[float]
 ) -> List[float]:
@@ -73,7 +77,7 @@ def backscatter_error_from_veil(
     (:func:`~seathru_nerfstudio.medium_fit.veil_sensitivity`), linear in ``ln B∞``. What is left
     of a run's ``β_B`` error beyond it is the fit's own. ``nan`` where a veil is not positive."""
     return [
-        math.exp(s * math.log(v / r)) - 1.0 if v > 0 and r > 0 else float("nan")
+        math.expm1(min(s * math.log(v / r), MAX_LOG_FACTOR)) + 0.0 if v > 0 and r > 0 else float("nan")  # + 0.0: no -0
         for s, v, r in zip(sensitivity, veil, reference_veil)
     ]
 
