@@ -354,7 +354,6 @@ def test_report_writes_table_and_plot(tmp_path):
 # ---------------------------------------------------------------- tiny end-to-end run
 
 
-@pytest.mark.slow
 def tiny_benchmark(root):
     """``seathru-bench run`` of two methods for 3 iterations on a tiny water scene, into ``root / "bench"``
     (``{"out", "proc"}``). Listed in ``BACKGROUND_JOBS``: the suite starts it at collection
@@ -373,6 +372,7 @@ def tiny_benchmark(root):
 BACKGROUND_JOBS = [tiny_benchmark]
 
 
+@pytest.mark.slow  # trains through seathru-bench
 def test_tiny_benchmark_run_end_to_end(background_job):
     job = background_job(tiny_benchmark)
     out, proc = job["out"], job["proc"]
