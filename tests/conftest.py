@@ -28,7 +28,10 @@ Every process of the suite computes on one thread (``OMP_NUM_THREADS=1`` unless 
 ``torch.set_num_threads(1)`` here): on a 2-core machine torch's two threads wait on each other
 whenever the other core is busy (a CLI the tests started, another program), and small tensors
 pay for it most: a 4000-pixel loss took 7.8 ms on two threads against 0.09 ms on one (load 4.5),
-and ``test_medium_fit.py`` 145 s against 10 s.
+and ``test_medium_fit.py`` 145 s against 10 s. NumPy's OpenBLAS is limited to one thread too
+(``threadpoolctl``): a pytest plugin imports NumPy before this file sets ``OMP_NUM_THREADS``, and
+its second thread spins while it waits, so a least-squares test that takes 0.2 s alone took 34-38 s
+beside the suite's background work.
 
 Every test that uses the trained run is marked ``slow`` (``pytest -m "not slow"`` leaves them
 out). The suite runs in a random order (``pytest-randomly``, in the ``test`` extra): every test
@@ -58,9 +61,12 @@ os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
 
 
 def pytest_configure(config) -> None:
+    import threadpoolctl
     import torch
 
-    torch.set_num_threads(int(os.environ["OMP_NUM_THREADS"]))
+    threads = int(os.environ["OMP_NUM_THREADS"])
+    torch.set_num_threads(threads)
+    threadpoolctl.threadpool_limits(limits=threads)  # NumPy's OpenBLAS, loaded before OMP_NUM_THREADS was set
 
 
 TRAINED_RUN_USERS = {"tiny_trained_run", "tiny_run", "ns_eval_results", "tiny_pipeline"}
