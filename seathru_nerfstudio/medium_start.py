@@ -107,12 +107,18 @@ def is_open_water(open_share: Float[Tensor, "N"]) -> Bool[Tensor, "N"]:
     return open_share > OPEN_SHARE * torch.clamp(clearest, min=LEAST_CLEAREST)
 
 
-class OpenWaterColour:
+class OpenWaterColour(torch.nn.Module):
     """The colour of the training rays the first stage's geometry leaves open, and how it changes
     with their elevation ``up = sin(elevation)`` (along the scene's vertical, :mod:`~seathru_nerfstudio.vertical`): the
-    sums of a least-squares line."""
+    sums of a least-squares line.
+
+    The sums are the module's extra state, so a checkpoint holds them and a run killed in the first
+    stage and resumed reads the same veil as one that was not. They are not buffers: DDP would
+    overwrite every process's own sums with the first process's before each step. Only that first
+    process writes checkpoints, so only it takes the sums back (the others start from none)."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.total = torch.zeros(3, dtype=torch.float64)
         self.total_up_colour = torch.zeros(3, dtype=torch.float64)
         self.total_up = torch.zeros(2, dtype=torch.float64)  # sums of up and up^2
@@ -133,6 +139,19 @@ class OpenWaterColour:
             self.highest_up = max(self.highest_up, float(up_open.max()))
         self.open_rays += int(colour.shape[0])
         self.rays += int(is_open.numel())
+
+    def get_extra_state(self) -> Float[Tensor, "11"]:
+        """The sums packed in one float64 tensor (every count below 2**53 is exact), so that code
+        that treats a state dict's values as tensors keeps working."""
+        counts = torch.tensor([self.highest_up, self.open_rays, self.rays], dtype=torch.float64)
+        return torch.cat([self.total, self.total_up_colour, self.total_up, counts])
+
+    def set_extra_state(self, state: Float[Tensor, "11"]) -> None:
+        if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
+            return  # the checkpoint holds the first process's sums: the pooled mean counts them once
+        packed = state.detach().double().cpu().clone()
+        self.total, self.total_up_colour, self.total_up = packed[:3], packed[3:6], packed[6:8]
+        self.highest_up, self.open_rays, self.rays = float(packed[8]), int(packed[9]), int(packed[10])
 
     def pooled(self, device: torch.device | str = "cpu") -> "OpenWaterColour":
         """These sums over every process of a distributed run (``self`` where there is none), so that

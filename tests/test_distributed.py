@@ -189,7 +189,10 @@ def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
         read.add(colour.expand(rays, 3), torch.ones(rays, 1), torch.full((rays, 1), (-0.1, 0.2)[local_rank]))
         alone = read.mean()
         pooled = read.pooled("cpu")
+        restored = OpenWaterColour()
+        restored.set_extra_state(read.get_extra_state())  # each rank loads the checkpoint rank 0 wrote
         result = {"alone": alone, "pooled": pooled.mean(), "rise": pooled.rise(), "counts": (pooled.open_rays, pooled.rays)}
+        result["restored"] = (restored.open_rays, restored.rays)
         torch.save(result, Path(out) / f"read{local_rank}.pt")
     finally:
         dist.destroy_process_group()
@@ -198,7 +201,8 @@ def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
 def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     """The veil is read from the open rays of every process (10 rays of one colour on rank 0, 30 of
     twice it, higher up, on rank 1: the ray-weighted mean 1.75 times rank 0's, and one rise), so that
-    the ranks hold one veil; each rank alone would hold its own."""
+    the ranks hold one veil; each rank alone would hold its own. Only rank 0 writes checkpoints, so
+    only it takes back the sums from one: the pooled mean of a resumed run counts them once."""
     from seathru_nerfstudio.distributed import free_local_url
 
     mp.spawn(_read_open_water, args=(free_local_url(), str(tmp_path)), nprocs=WORLD, join=True)
@@ -211,3 +215,4 @@ def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     assert (up0, highest0) == (up1, highest1) and torch.equal(slope0, slope1)
     assert up0 == pytest.approx((10 * -0.1 + 30 * 0.2) / 40) and highest0 == pytest.approx(0.2)
     assert torch.all(slope0 > 0)  # the brighter water is the higher
+    assert r0["restored"] == (10, 10) and r1["restored"] == (0, 0)

@@ -236,3 +236,35 @@ def test_the_open_water_rise_is_the_least_squares_slope_of_its_colour_over_eleva
     torch.testing.assert_close(veil, expected, rtol=1e-5, atol=1e-6)
     assert torch.all(veil[2] >= veil[1]) and torch.all(veil[1] >= veil[0])
     assert torch.isfinite(medium(directions.half()).rgb).all()
+
+
+def test_the_open_water_sums_are_in_the_checkpoint_so_a_resumed_first_stage_reads_the_same_veil(tmp_path):
+    """A model whose first stage was killed after some batches and loaded from its checkpoint
+    (``torch.save``, then the safe loader ns-train uses) holds the same sums; the batches it then
+    adds give the veil an uninterrupted stage gives, to the last bit. A checkpoint written before
+    the sums were saved loads with none (``strict=False``, as nerfstudio falls back to)."""
+    from seathru_nerfstudio.compat import load_checkpoint
+
+    up = torch.linspace(-0.3, 0.5, 40)[:, None]
+    colours = torch.tensor([0.05, 0.2, 0.4]) + up * torch.tensor([0.02, 0.1, 0.05]) + 0.01 * torch.rand(40, 3)
+    shares = torch.where(torch.arange(40)[:, None] % 3 == 0, 0.2, 1.0)  # a third of the rays closed
+    whole = tiny_model(medium_first_steps=6, medium_fit_step=10)
+    killed = tiny_model(medium_first_steps=6, medium_fit_step=10)
+    for model in (whole, killed):
+        model.open_water_colour.add(colours[:25], shares[:25], up[:25])
+    torch.save({"pipeline": killed.state_dict()}, tmp_path / "step.ckpt")
+    state = load_checkpoint(tmp_path / "step.ckpt")["pipeline"]
+    assert "open_water_colour._extra_state" in state
+    resumed = tiny_model(medium_first_steps=6, medium_fit_step=10)
+    resumed.load_state_dict(state)
+    for model in (whole, resumed):
+        model.open_water_colour.add(colours[25:], shares[25:], up[25:])
+    assert (resumed.open_water_colour.open_rays, resumed.open_water_colour.rays) == (whole.open_water_colour.open_rays, 40)
+    for model in (whole, resumed):
+        apply_density_caps(model, 5)  # the first stage's last step: the veil and its rise are read
+    assert torch.equal(resumed.medium_field.rgb_logit, whole.medium_field.rgb_logit)
+    assert torch.equal(resumed.medium_field.state_dict()["veil_rise"], whole.medium_field.state_dict()["veil_rise"])
+    older = {k: v for k, v in state.items() if not k.startswith("open_water_colour.")}
+    fresh = tiny_model(medium_first_steps=6, medium_fit_step=10)
+    assert fresh.load_state_dict(older, strict=False).missing_keys == ["open_water_colour._extra_state"]
+    assert fresh.open_water_colour.rays == 0 and fresh.open_water_colour.mean() is None
