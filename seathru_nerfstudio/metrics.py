@@ -156,7 +156,8 @@ def view_metrics(
       its far third ``depth_abs_rel_far``, the median ``depth_abs_rel_median`` (robust to the few
       empty rays whose depth is the far plane), the signed bias ``depth_log_ratio_median`` (the
       median of ``log(depth / true)``: < 0 when surfaces sit too near), and the mean object
-      opacity on object rays (``object_accumulation``) and on open water (``open_water_accumulation``, which must stay 0);
+      opacity on object rays (``object_accumulation``) and on open water (``open_water_accumulation``: 0 where the object
+      field leaves the open water empty, 0.5–0.6 on path-traced water);
     * with ``gt_clean`` and a ``clean`` output: ``clean_psnr``, ``clean_ssim``, on object pixels only
       when ``gt_depth`` says where open water is (it has no clean colour); then also
       :func:`clean_psnrs`: ``clean_psnr_objects`` (the same as ``clean_psnr``) and ``clean_psnr_near_third``;
