@@ -1,4 +1,4 @@
-"""Where does a trained run fill the open water? (Seconds of CPU per run; needs a run saved with
+"""Where does a trained run fill the open water? (About a minute of CPU per run on 2 cores; needs a run saved with
 ``seathru-bench run --save-model`` or ``ns-train``, and the scene's ground truth.)
 
 Renders the run's held-out views and keeps the open-water pixels (``ground_truth/depth`` is
@@ -48,7 +48,7 @@ def open_water_samples(config: Path, scene: Path):
         )
     columns = {k: [] for k in ("up", "accumulation", "clean", "rgb", "truth", "depth")}
     for index in range(len(dataset)):
-        name = Path(dataset._dataparser_outputs.image_filenames[index]).stem
+        name = Path(dataset.image_filenames[index]).stem
         true_range = np.load(scene / "ground_truth" / "depth" / f"{name}.npy")
         open_water = ~np.isfinite(true_range)
         camera = dataset.cameras[index : index + 1]
@@ -73,6 +73,8 @@ def open_water_samples(config: Path, scene: Path):
 
 def main(config: Path, scene: Path) -> None:
     samples = open_water_samples(config, scene)
+    if samples["up"].size == 0:
+        sys.exit(f"{scene}: the held-out views show no open water (ground_truth/depth is finite everywhere)")
     edges = np.quantile(samples["up"], np.linspace(0.0, 1.0, NUM_BANDS + 1))
     show = lambda values: "(" + ", ".join(f"{v:.3f}" for v in values) + ")"  # noqa: E731
     for low, high in zip(edges[:-1], edges[1:]):
