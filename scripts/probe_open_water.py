@@ -44,7 +44,7 @@ def open_water_samples(config: Path, scene: Path):
         print(
             f"held veil {[round(float(v), 4) for v in torch.sigmoid(medium.rgb_logit)]}, rising by "
             f"{[round(float(v), 3) for v in medium.veil_rise]} per unit of sin(elevation) from "
-            f"{float(medium.veil_rise_from):+.3f} to {float(medium.veil_rise_to):+.3f}"
+            f"{[round(float(v), 3) for v in medium.veil_rise_from]} to {float(medium.veil_rise_to):+.3f}"
         )
     columns = {k: [] for k in ("up", "accumulation", "clean", "rgb", "truth", "depth")}
     for index in range(len(dataset)):

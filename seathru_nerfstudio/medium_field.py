@@ -201,8 +201,8 @@ class SceneMedium(nn.Module):
         self.register_buffer("vertical", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
         """The unit up of the scene frame for the elevation (:func:`~seathru_nerfstudio.vertical.scene_vertical`;
         set from the data at every start, so not in checkpoints)."""
-        self.register_buffer("veil_rise_from", torch.tensor(1.0))
-        """Where the veil starts to rise: ``sin`` of the elevation (``direction · vertical``)."""
+        self.register_buffer("veil_rise_from", torch.ones(3))
+        """Where the veil starts to rise, per channel: ``sin`` of the elevation (``direction · vertical``)."""
         self.register_buffer("veil_rise", torch.zeros(3))
         """The veil's rise over ``c_med`` per unit of ``sin(elevation)`` above :attr:`veil_rise_from` (per channel, >= 0)."""
         self.register_buffer("veil_rise_to", torch.tensor(1.0))
@@ -212,12 +212,20 @@ class SceneMedium(nn.Module):
         :meth:`move_to_fit` moves them (zeros: no fit yet); in checkpoints, so a resumed run moves alike."""
         self.register_buffer("fit_to", torch.zeros(6))
 
-    def set_veil_rise(self, start: float, rise: Float[Tensor, "3"], end: float = 1.0) -> None:
-        """Hold the veil at ``c_med (1 + rise clamp(up - start, 0, end - start))``, ``up = sin(elevation)``."""
+    def set_veil_rise(self, start: float | Float[Tensor, "3"], rise: Float[Tensor, "3"], end: float = 1.0) -> None:
+        """Hold the veil at ``c_med (1 + rise clamp(up - start, 0, end - start))``, ``up = sin(elevation)``;
+        ``start``: one elevation or one per channel."""
         with torch.no_grad():
-            self.veil_rise_from.fill_(float(start))
+            self.veil_rise_from.copy_(torch.as_tensor(start, dtype=self.veil_rise_from.dtype).expand(3))
             self.veil_rise.copy_(rise.clamp_min(0.0))
-            self.veil_rise_to.fill_(max(float(end), float(start)))
+            self.veil_rise_to.fill_(max(float(end), float(self.veil_rise_from.max())))
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
+        """A checkpoint from before the start was per channel holds one start: every channel takes it."""
+        key = prefix + "veil_rise_from"
+        if key in state_dict and state_dict[key].dim() == 0:
+            state_dict[key] = state_dict[key].expand(3).clone()
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
 
     def set_vertical(self, vertical: Sequence[float] | Tensor) -> None:
         """The scene frame's up (three numbers, normalised here) along which the elevation is measured;
@@ -234,6 +242,13 @@ class SceneMedium(nn.Module):
         up = sin_elevation(directions, self.vertical)
         above = torch.minimum(up, self.veil_rise_to) - self.veil_rise_from
         return 1.0 + self.veil_rise * above.clamp_min(0.0)
+
+    def rendered_veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+        """:meth:`veil_gain` as :meth:`forward` renders it (capped where ``c_med`` times it reaches 1), no
+        gradient: what :func:`~seathru_nerfstudio.rendering.render_seathru` takes as ``veil_gain``."""
+        with torch.no_grad():
+            level = torch.sigmoid(self.rgb_logit.float()).to(directions.device)
+            return torch.minimum(self.veil_gain(directions), 1.0 / level)
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene

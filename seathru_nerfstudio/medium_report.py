@@ -23,8 +23,10 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   ray whose unit direction has component ``u`` along ``vertical`` (the scene frame's up, from the
   training cameras: :mod:`~seathru_nerfstudio.vertical`) is
   ``B_inf (1 + gain (min(u, up_to_sin_elevation) - above_sin_elevation))`` above
-  ``above_sin_elevation``, and ``B_inf`` below it; ``B_inf_highest`` is its value at the top.
-  ``B_inf`` itself is the veil looking down, the one the surfaces are seen through.
+  ``above_sin_elevation`` (per channel), and ``B_inf`` below it; ``B_inf_highest`` is its value at the top.
+  ``B_inf`` itself is the veil looking down. The surfaces are seen through the backscatter rate
+  ``B_inf beta_B`` in every direction: the rise is the far water's, higher up
+  (:func:`~seathru_nerfstudio.rendering.depth_lit_backscatter_density`).
 * ``medium_scope ray`` (the medium is an MLP of the ray direction): ``directions``, a table of
   the medium over a grid of view directions in the scene frame, elevations measured along
   ``vertical`` as above; the top-level values are then its mean over the training cameras' optical axes
@@ -147,7 +149,7 @@ def _veil_rise(model: Any) -> Optional[Dict[str, Any]]:
     gain = getattr(field, "veil_rise", None)
     if gain is None or not bool((gain > 0).any()):
         return None
-    start, end = float(field.veil_rise_from), float(field.veil_rise_to)
+    start, end = _numbers(field.veil_rise_from.detach().double().cpu()), float(field.veil_rise_to)
     vertical = field.vertical.detach().double().cpu()
     top = math.sqrt(max(0.0, 1.0 - end * end)) * level_direction(vertical) + end * vertical  # at the highest elevation
     return {

@@ -8,10 +8,11 @@ stage also trains the object *geometry* from the SfM depths and the empty-space 
 half, :class:`OpenWaterColour` averages the colour of the training rays that geometry leaves open
 (:func:`is_open_water`: transmittance above 95% of the clearest rays'), and at its end that mean
 becomes ``B∞``, held from then on (``SeathruModel.veil_held``). Light falls from above, so the open water brightens looking up: the
-veil of rays looking up past the open rays' mean elevation rises by the least-squares slope of their
-colour over ``sin(elevation)`` (held too; never falls: :meth:`OpenWaterColour.rise`,
-:meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_rise`). Path-traced coastal water, seed 7:
-32.11 dB in the medium against 30.37 with one constant veil (docs/history.md, 2026-11-28 (eba0fe7)).
+veil of rays looking up rises along the least-squares line of the colour over ``sin(elevation)`` of the
+open rays above the level plane, from where that line passes the held mean (held too; never falls:
+:meth:`OpenWaterColour.rise`, :meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_rise`).
+Path-traced coastal water, seed 7: 32.11 dB in the medium against 30.37 with one constant veil
+(docs/history.md, 2026-11-28 (eba0fe7)).
 A rise fitted to all the open rays, unlike a maximum over groups of them, is not moved by one group
 that holds object colour (the 48×36 water check's open water filled under the maximum). Learned on
 after entry instead, from the rays the object field leaves open, the veil climbs as that field fills
@@ -122,6 +123,9 @@ class OpenWaterColour(torch.nn.Module):
         self.total = torch.zeros(3, dtype=torch.float64)
         self.total_up_colour = torch.zeros(3, dtype=torch.float64)
         self.total_up = torch.zeros(2, dtype=torch.float64)  # sums of up and up^2
+        self.above_level = torch.zeros(9, dtype=torch.float64)
+        """The same sums over the open rays above the level plane (``up > 0``): count, colour (3), up times
+        colour (3), up, up^2."""
         self.highest_up = -1.0
         self.open_rays = 0
         self.rays = 0
@@ -135,23 +139,31 @@ class OpenWaterColour(torch.nn.Module):
         self.total += colour.sum(dim=0)
         self.total_up_colour += (up_open * colour).sum(dim=0)
         self.total_up += torch.stack([up_open.sum(), (up_open**2).sum()])
+        above = up_open[:, 0] > 0
+        colour_above, up_above = colour[above], up_open[above]
+        self.above_level += torch.cat([
+            torch.tensor([float(above.sum())], dtype=torch.float64), colour_above.sum(dim=0),
+            (up_above * colour_above).sum(dim=0), torch.stack([up_above.sum(), (up_above**2).sum()]),
+        ])
         if up_open.numel():
             self.highest_up = max(self.highest_up, float(up_open.max()))
         self.open_rays += int(colour.shape[0])
         self.rays += int(is_open.numel())
 
-    def get_extra_state(self) -> Float[Tensor, "11"]:
+    def get_extra_state(self) -> Float[Tensor, "20"]:
         """The sums packed in one float64 tensor (every count below 2**53 is exact), so that code
         that treats a state dict's values as tensors keeps working."""
         counts = torch.tensor([self.highest_up, self.open_rays, self.rays], dtype=torch.float64)
-        return torch.cat([self.total, self.total_up_colour, self.total_up, counts])
+        return torch.cat([self.total, self.total_up_colour, self.total_up, counts, self.above_level])
 
-    def set_extra_state(self, state: Float[Tensor, "11"]) -> None:
+    def set_extra_state(self, state: Float[Tensor, "20"]) -> None:
+        """The sums of :meth:`get_extra_state`; a checkpoint from before the sums above the level (11 numbers) has none of those."""
         if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
             return  # the checkpoint holds the first process's sums: the pooled mean counts them once
         packed = state.detach().double().cpu().clone()
         self.total, self.total_up_colour, self.total_up = packed[:3], packed[3:6], packed[6:8]
         self.highest_up, self.open_rays, self.rays = float(packed[8]), int(packed[9]), int(packed[10])
+        self.above_level = packed[11:20] if packed.numel() >= 20 else torch.zeros(9, dtype=torch.float64)
 
     def pooled(self, device: torch.device | str = "cpu") -> "OpenWaterColour":
         """These sums over every process of a distributed run (``self`` where there is none), so that
@@ -159,7 +171,7 @@ class OpenWaterColour(torch.nn.Module):
         if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
             return self
         counts = torch.tensor([self.open_rays, self.rays], dtype=torch.float64)
-        packed = torch.cat([self.total, self.total_up_colour, self.total_up, counts]).to(device)
+        packed = torch.cat([self.total, self.total_up_colour, self.total_up, counts, self.above_level]).to(device)
         torch.distributed.all_reduce(packed)
         packed = packed.cpu()
         highest = torch.tensor([self.highest_up], dtype=torch.float64, device=device)
@@ -168,6 +180,7 @@ class OpenWaterColour(torch.nn.Module):
         pooled.highest_up = float(highest[0])
         pooled.total, pooled.total_up_colour, pooled.total_up = packed[:3], packed[3:6], packed[6:8]
         pooled.open_rays, pooled.rays = int(packed[8]), int(packed[9])
+        pooled.above_level = packed[10:19]
         return pooled
 
     def mean(self) -> Optional[Float[Tensor, "3"]]:
@@ -176,18 +189,39 @@ class OpenWaterColour(torch.nn.Module):
             return None
         return self.total / self.open_rays
 
-    def rise(self) -> Optional[Tuple[float, Float[Tensor, "3"], float]]:
-        """``(mean up, slope, highest up)``: the open rays' mean ``sin(elevation)``, the least-squares
-        slope of their colour over it (per channel, colour per unit of ``up``; 0 where their elevations
-        spread by under 1e-4 in ``up``) and the highest ``up`` among them, or ``None`` where :meth:`mean` is."""
-        if self.mean() is None:
+    def rise(self) -> Optional[Tuple[Float[Tensor, "3"], Float[Tensor, "3"], float]]:
+        """``(start, slope, highest up)``, or ``None`` where :meth:`mean` is: the veil rises from ``start``
+        (``sin(elevation)``, per channel) by ``slope`` (colour per unit of ``up``) up to the highest
+        open ray's ``up``.
+
+        The line is the least-squares fit of the colour over ``up`` of the open rays above the level
+        plane, where at least :data:`MIN_OPEN_FRACTION` of the open rays are and their elevations spread;
+        the veil rises from where that line passes the mean colour, between the mean elevation and the
+        highest open ray. Below the level the first stage counts as open the far seabed its geometry
+        has not formed yet: a line through those rays is 2–11× too flat (docs/history.md, 2026-11-29).
+        Without rays above the level, the line of all the open rays from their mean elevation; no slope
+        where their elevations spread by under 1e-4 in ``up``."""
+        mean = self.mean()
+        if mean is None:
             return None
         n = self.open_rays
         mean_up = float(self.total_up[0]) / n
+        count = float(self.above_level[0])
+        if count > 0 and count >= MIN_OPEN_FRACTION * n:
+            up_above = float(self.above_level[7]) / count
+            spread = float(self.above_level[8]) / count - up_above**2
+            if spread >= 1e-8:
+                colour_above = self.above_level[1:4] / count
+                slope = (self.above_level[4:7] / count - up_above * colour_above) / spread
+                rising = slope > 0
+                crossing = up_above + (mean - colour_above) / torch.where(rising, slope, torch.ones_like(slope))
+                start = torch.where(rising, crossing, torch.full_like(slope, mean_up))
+                return start.clamp(mean_up, max(mean_up, self.highest_up)), slope, self.highest_up
         spread = float(self.total_up[1]) / n - mean_up**2
+        start = torch.full((3,), mean_up, dtype=torch.float64)
         if spread < 1e-8:
-            return mean_up, torch.zeros(3, dtype=torch.float64), self.highest_up
-        return mean_up, (self.total_up_colour / n - mean_up * self.total / n) / spread, self.highest_up
+            return start, torch.zeros(3, dtype=torch.float64), self.highest_up
+        return start, (self.total_up_colour / n - mean_up * self.total / n) / spread, self.highest_up
 
 
 DARK_QUANTILE = 0.01
@@ -281,7 +315,7 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
         CONSOLE.print(
             f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "
-            f"{read.open_rays} open rays, rising by {show(gain)} per unit of sin(elevation) above {rise[0]:.3g}; held from here"
+            f"{read.open_rays} open rays, rising by {show(gain)} per unit of sin(elevation) above {show(rise[0])}; held from here"
         )
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:

@@ -244,11 +244,14 @@ class SeathruModel(NerfactoModel):
             medium = MediumOutputs(rgb=medium.rgb, sigma_attn=medium.sigma_attn.detach(), sigma_bs=medium.sigma_bs.detach())
         elif self.veil_held:
             medium = MediumOutputs(rgb=medium.rgb.detach(), sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs)
+        # The veil brightens looking up because the far water is higher, in brighter light; the backscatter
+        # in front of a surface keeps the level veil's rate (rendering.depth_lit_backscatter_density).
+        veil_gain = self.medium_field.rendered_veil_gain(ray_bundle.directions) if isinstance(self.medium_field, SceneMedium) else None
         render = render_seathru(
             object_rgb=field_outputs[FieldHeadNames.RGB], object_density=field_outputs[FieldHeadNames.DENSITY],
             starts=ray_samples.frustums.starts, deltas=ray_samples.deltas, medium_rgb=medium.rgb,
             sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
-            veil_from_open_rays=True,
+            veil_from_open_rays=True, veil_gain=veil_gain,
         )
         outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry)
         if self.training and self.phases.backscatter_excess_active and not self.object_frozen:
@@ -262,6 +265,7 @@ class SeathruModel(NerfactoModel):
                 sigma_attn=medium.sigma_attn,
                 sigma_bs=medium.sigma_bs,
                 quadrature=self.config.quadrature,
+                veil_gain=veil_gain,
             )
             outputs["backscatter_geometry_held"] = held.backscatter
         return outputs

@@ -36,6 +36,16 @@ goes on to infinity, so a ray that hits nothing shows the veiling light ``c_med`
 near/far planes no longer clip the medium. (In clear air, ``sigma_bs = 0`` exactly, there is
 no backscatter at all.)
 
+Light falls from above, so the water higher up is brighter. Along a ray with ``sin`` of elevation
+``u`` the light the medium scatters grows as ``e^{kappa u t}`` (``kappa``: the light's attenuation
+with depth, per scene unit), and the backscatter in front of a surface at range ``z`` is
+
+    B∞ sigma_bs / a (1 - e^{-a z}),   a = sigma_bs - kappa u:
+
+the backscatter of a homogeneous medium whose veil is ``B∞ G``, ``G = sigma_bs / a``, and whose
+backscatter density is ``sigma_bs / G``. Its rate at the camera, ``B∞ sigma_bs``, is the same in
+every direction; only the veil, the far water, brightens looking up (:func:`depth_lit_backscatter_density`).
+
 All maths runs in float32 with autocast disabled, so fp16/bf16 inputs give finite outputs.
 """
 
@@ -86,6 +96,17 @@ def object_weights(
         tau = exclusive_optical_depth(sigma_obj, delta)  # [..., S+1, 1]
         transmittance = torch.exp(-tau[..., :-1, :])
         return transmittance * one_minus_exp(sigma_obj * delta), transmittance, tau
+
+
+def depth_lit_backscatter_density(
+    sigma_bs: Float[Tensor, "*batch 3"], veil_gain: Float[Tensor, "*batch 3"]
+) -> Float[Tensor, "*batch 3"]:
+    """``sigma_bs / G``: the backscatter density, per scene unit, of a ray whose veil is ``G >= 1``
+    times the level veil ``B∞`` because the light grows along it (module docstring), so that
+    ``B∞ G (1 - e^{-sigma_bs z / G})`` keeps the slope ``B∞ sigma_bs`` at ``z = 0``. ``G`` is
+    clamped to ``>= 1`` (a veil that rises, never one that falls) and ``<= 1 / tiny``."""
+    gain = veil_gain.to(sigma_bs.dtype).clamp(1.0, 1.0 / torch.finfo(torch.float32).tiny)
+    return sigma_bs / gain
 
 
 def absorbed_fraction(
@@ -141,6 +162,7 @@ def render_seathru(
     sigma_bs: Float[Tensor, "*batch 3"],
     quadrature: Quadrature = "analytic",
     veil_from_open_rays: bool = False,
+    veil_gain: Float[Tensor, "*batch 3"] | None = None,
 ) -> SeathruRender:
     """Render rays through an object field in a per-ray homogeneous medium (sec. 4.3).
 
@@ -152,6 +174,10 @@ def render_seathru(
     veiling light is the colour at infinity, seen directly only where the view is open; on a ray
     that ends on a surface, ``B_inf`` and ``sigma_bs`` trade off along ``B_inf (1 - e^{-sigma_bs z})``,
     and this leaves that trade to the densities.
+
+    ``veil_gain`` (``G >= 1``, per ray and channel): ``medium_rgb`` is the level veil times ``G``, the
+    far water brighter looking up; the backscatter density is then ``sigma_bs / G``
+    (:func:`depth_lit_backscatter_density`), so only the far water brightens. ``None``: ``G = 1``.
     """
     if quadrature not in ("analytic", "paper"):
         raise ValueError(f"unknown quadrature {quadrature!r}; expected 'analytic' or 'paper'")
@@ -163,7 +189,10 @@ def render_seathru(
         delta = deltas.to(dtype).clamp_min(0.0)
         c_med = medium_rgb.to(dtype)[..., None, :]  # [..., 1, 3]
         attn = sigma_attn.to(dtype).clamp(0.0, SIGMA_MAX)[..., None, :]
-        bs = sigma_bs.to(dtype).clamp(0.0, SIGMA_MAX)[..., None, :]
+        bs = sigma_bs.to(dtype).clamp(0.0, SIGMA_MAX)
+        if veil_gain is not None:
+            bs = depth_lit_backscatter_density(bs, veil_gain.to(dtype))
+        bs = bs[..., None, :]
 
         weights, transmittance, tau = object_weights(sigma_obj, delta)  # tau: [..., S+1, 1]
         tau_start, tau_end = tau[..., :-1, :], tau[..., -1:, :]

@@ -193,6 +193,7 @@ def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
         restored.set_extra_state(read.get_extra_state())  # each rank loads the checkpoint rank 0 wrote
         result = {"alone": alone, "pooled": pooled.mean(), "rise": pooled.rise(), "counts": (pooled.open_rays, pooled.rays)}
         result["restored"] = (restored.open_rays, restored.rays)
+        result["above_level_rays"] = float(pooled.above_level[0])
         torch.save(result, Path(out) / f"read{local_rank}.pt")
     finally:
         dist.destroy_process_group()
@@ -212,7 +213,8 @@ def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     torch.testing.assert_close(r0["pooled"], water * (10 * 1 + 30 * 2) / 40, rtol=1e-6, atol=1e-7)
     assert torch.equal(r0["pooled"], r1["pooled"]) and r0["counts"] == r1["counts"] == (40, 40)
     (up0, slope0, highest0), (up1, slope1, highest1) = r0["rise"], r1["rise"]
-    assert (up0, highest0) == (up1, highest1) and torch.equal(slope0, slope1)
-    assert up0 == pytest.approx((10 * -0.1 + 30 * 0.2) / 40) and highest0 == pytest.approx(0.2)
+    assert torch.equal(up0, up1) and highest0 == highest1 and torch.equal(slope0, slope1)
+    assert up0.tolist() == pytest.approx([(10 * -0.1 + 30 * 0.2) / 40] * 3) and highest0 == pytest.approx(0.2)
     assert torch.all(slope0 > 0)  # the brighter water is the higher
     assert r0["restored"] == (10, 10) and r1["restored"] == (0, 0)
+    assert r0["above_level_rays"] == r1["above_level_rays"] == 30  # rank 1's rays, above the level, counted on both

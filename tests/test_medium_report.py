@@ -40,7 +40,7 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     water.medium_field.set_veil_rise(0.1, torch.tensor([0.0, 0.5, 2.0]), 0.3)
     rise = medium_report.medium_report(water)
     down = torch.tensor(rise["B_inf"], dtype=torch.float64)
-    assert rise["B_inf_rise"]["above_sin_elevation"] == pytest.approx(0.1)
+    assert rise["B_inf_rise"]["above_sin_elevation"] == pytest.approx([0.1, 0.1, 0.1])
     assert rise["B_inf_rise"]["up_to_sin_elevation"] == pytest.approx(0.3)
     expected = (down * (1 + torch.tensor([0.0, 0.5, 2.0], dtype=torch.float64) * (0.3 - 0.1))).clamp(max=1.0)
     assert rise["B_inf_rise"]["B_inf_highest"] == pytest.approx(expected.tolist(), rel=1e-5)

@@ -206,36 +206,56 @@ def test_the_veil_becomes_the_open_water_colour_at_the_end_of_the_first_stage(ca
     torch.testing.assert_close(torch.sigmoid(none_open.medium_field.rgb_logit).detach(), before)
 
 
-def test_the_open_water_rise_is_the_least_squares_slope_of_its_colour_over_elevation():
-    """Colours linear in ``up`` over any batches: the slope and the mean elevation are recovered
-    exactly, with the highest elevation seen; a level view (no spread of elevation) has no slope; the
-    model's veil then rises above the mean elevation by that slope up to the highest, is the mean below
-    it and that value above it, and never falls looking up."""
+def test_the_open_water_rise_is_the_line_of_the_open_rays_above_the_level():
+    """Open rays above the level plane whose colour is linear in ``up``, and below it a flat colour
+    (far seabed the first stage has not formed): the slope is the line above the level, exactly,
+    whatever the rays below; the veil starts where that line passes the mean colour (per channel, not
+    below the mean elevation), follows the line up to the highest open ray and stays there; a channel
+    that darkens looking up has no rise. Without open rays above the level the line is that of all
+    the open rays, from their mean elevation; a level view has no slope."""
     from seathru_nerfstudio.medium_field import SceneMedium
 
-    up = torch.linspace(-0.2, 0.4, 300)[:, None]
+    up_above = torch.linspace(0.01, 0.4, 200)[:, None]
     slope = torch.tensor([0.1, 0.3, -0.2])
-    colours = torch.tensor([0.05, 0.2, 0.4]) + up * slope
+    intercept = torch.tensor([0.05, 0.2, 0.4])
+    above = intercept + up_above * slope
+    up_below = torch.linspace(-0.2, 0.0, 300)[:, None]
+    below = torch.tensor([0.07, 0.26, 0.3]).expand(300, 3)
     estimate = OpenWaterColour()
-    estimate.add(colours[:100], torch.ones(100, 1), up[:100])
-    estimate.add(colours[100:], torch.ones(200, 1), up[100:])
-    mean_up, fitted, highest = estimate.rise()
-    assert mean_up == pytest.approx(0.1, abs=1e-6)  # float32 elevations
+    estimate.add(below, torch.ones(300, 1), up_below)
+    estimate.add(above[:50], torch.ones(50, 1), up_above[:50])
+    estimate.add(above[50:], torch.ones(150, 1), up_above[50:])
+    start, fitted, highest = estimate.rise()
+    torch.testing.assert_close(fitted, slope.double(), rtol=1e-4, atol=1e-5)
+    mean, mean_up = estimate.mean(), float(torch.cat([up_below, up_above]).double().mean())
+    crossing = (mean - intercept.double()) / slope.double()
+    expected_start = torch.where(slope > 0, crossing.clamp(min=mean_up), torch.full((3,), mean_up, dtype=torch.float64))
+    torch.testing.assert_close(start, expected_start, rtol=1e-4, atol=1e-5)
     assert highest == pytest.approx(0.4, abs=1e-6)
-    torch.testing.assert_close(fitted, slope.double(), rtol=1e-5, atol=1e-6)
-    level = OpenWaterColour()
-    level.add(colours, torch.ones(300, 1), torch.zeros(300, 1))
-    assert torch.equal(level.rise()[1], torch.zeros(3, dtype=torch.float64))
 
-    medium = SceneMedium(init_rgb=estimate.mean().tolist())
-    medium.set_veil_rise(mean_up, (fitted.clamp_min(0) / estimate.mean()).float(), highest)
+    medium = SceneMedium(init_rgb=mean.tolist())
+    medium.set_veil_rise(start, (fitted.clamp_min(0) / mean).float(), highest)
     directions = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0, -1.0], [1.0, 0.0, 0.3], [1.0, 0.0, 1.0]]), dim=-1)
     veil = medium(directions).rgb.double()
     seen = directions[:, 2:3].double().clamp(max=highest)  # above the highest open ray the veil stays at its value there
-    expected = estimate.mean() + fitted.clamp_min(0) * (seen - mean_up).clamp_min(0)
+    expected = mean + fitted.clamp_min(0) * (seen - start).clamp_min(0)
     torch.testing.assert_close(veil, expected, rtol=1e-5, atol=1e-6)
+    on_line = (intercept + float(seen[1]) * slope).double()
+    follows = (slope > 0) & (crossing >= mean_up)  # the rising channels whose line passes the mean above the mean elevation
+    assert bool(follows.any())
+    torch.testing.assert_close(veil[1][follows], on_line[follows], rtol=1e-4, atol=1e-5)
     assert torch.all(veil[2] >= veil[1]) and torch.all(veil[1] >= veil[0])
     assert torch.isfinite(medium(directions.half()).rgb).all()
+
+    downward = OpenWaterColour()
+    up = torch.linspace(-0.4, -0.01, 300)[:, None]
+    downward.add(intercept + up * slope, torch.ones(300, 1), up)
+    start, fitted, _ = downward.rise()
+    torch.testing.assert_close(fitted, slope.double(), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(start, torch.full((3,), float(up.double().mean()), dtype=torch.float64), rtol=1e-5, atol=1e-6)
+    level = OpenWaterColour()
+    level.add(above, torch.ones(200, 1), torch.zeros(200, 1))
+    assert torch.equal(level.rise()[1], torch.zeros(3, dtype=torch.float64))
 
 
 def test_the_open_water_sums_are_in_the_checkpoint_so_a_resumed_first_stage_reads_the_same_veil(tmp_path):
@@ -268,3 +288,7 @@ def test_the_open_water_sums_are_in_the_checkpoint_so_a_resumed_first_stage_read
     fresh = tiny_model(medium_first_steps=6, medium_fit_step=10)
     assert fresh.load_state_dict(older, strict=False).missing_keys == ["open_water_colour._extra_state"]
     assert fresh.open_water_colour.rays == 0 and fresh.open_water_colour.mean() is None
+    before_above = state["open_water_colour._extra_state"][:11]  # a checkpoint from before the sums above the level
+    fresh.open_water_colour.set_extra_state(before_above)
+    assert fresh.open_water_colour.open_rays == killed.open_water_colour.open_rays
+    assert torch.equal(fresh.open_water_colour.above_level, torch.zeros(9, dtype=torch.float64))

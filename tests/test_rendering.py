@@ -7,7 +7,7 @@ import itertools
 import pytest
 import torch
 
-from seathru_nerfstudio.rendering import absorbed_fraction, formation_model, object_weights, render_seathru
+from seathru_nerfstudio.rendering import absorbed_fraction, depth_lit_backscatter_density, formation_model, object_weights, render_seathru
 
 
 
@@ -346,3 +346,40 @@ def test_veil_from_open_rays_keeps_values_and_scales_the_veil_gradient_by_the_op
     torch.testing.assert_close(veil_open[1][1], torch.ones(3), rtol=1e-12, atol=1e-15)  # empty: sees B_inf
     torch.testing.assert_close(veil_open[1][2], torch.zeros(3), rtol=0, atol=1e-12)  # behind the wall
     assert (veil_open[1][0] > 0).all() and (veil_open[1][0] < plain[1][0]).all()
+
+
+@pytest.mark.parametrize("up", [0.05, 0.2, 0.6])
+def test_depth_lit_backscatter_is_the_integral_of_light_growing_along_the_ray(up):
+    """Light growing as ``e^{kappa u t}`` along the ray (``kappa`` per unit length, ``u`` the sin of the
+    elevation) gives, in front of an opaque wall at ``z``, ``B∞ ∫_0^z sigma e^{-sigma t} e^{kappa u t} dt``
+    (trapezoid sum on a fine grid) and, on an open ray, ``B∞ sigma / (sigma - kappa u)``: the renderer
+    with the veil ``B∞ G``, ``G = sigma / (sigma - kappa u)``, and ``veil_gain = G``. Its slope at the
+    camera is the level veil's; without ``veil_gain`` the wall's backscatter is ``G`` times too bright."""
+    kappa = 0.8 * BETA_B  # the light's attenuation with depth, per unit length, below sigma_bs
+    gain = BETA_B / (BETA_B - kappa * up)
+    starts, deltas = uneven_bins(40, near=0.05, far=6.0, seed=3)
+    for k in (0, 5, 20, 39):
+        rgb, density = wall_ray(starts, deltas, k)
+        z = float(starts[k])
+        t = torch.linspace(0.0, z, 200001)[:, None]
+        integrand = BETA_B * torch.exp(-(BETA_B - kappa * up) * t)
+        expected = B_INF * torch.trapezoid(integrand, t, dim=0)
+        out = render_seathru(rgb, density, starts, deltas, B_INF * gain, BETA_D, BETA_B, veil_gain=gain)
+        torch.testing.assert_close(out.backscatter, expected, rtol=1e-8, atol=1e-12)
+        torch.testing.assert_close(out.direct, J * torch.exp(-BETA_D * z), rtol=1e-10, atol=1e-12)
+        plain = render_seathru(rgb, density, starts, deltas, B_INF * gain, BETA_D, BETA_B)
+        torch.testing.assert_close(plain.backscatter, gain * B_INF * -torch.expm1(-BETA_B * z), rtol=1e-10, atol=1e-12)
+    empty = torch.zeros(40, 1)
+    open_ray = render_seathru(torch.zeros(40, 3), empty, starts, deltas, B_INF * gain, BETA_D, BETA_B, veil_gain=gain)
+    torch.testing.assert_close(open_ray.backscatter, B_INF * BETA_B / (BETA_B - kappa * up), rtol=1e-10, atol=1e-12)
+    near = torch.tensor([[1e-4]]), torch.tensor([[1e-4]])
+    wall = render_seathru(J[None], torch.full((1, 1), 1e12), near[0], near[1], B_INF * gain, BETA_D, BETA_B, veil_gain=gain)
+    torch.testing.assert_close(wall.backscatter / 1e-4, B_INF * BETA_B, rtol=1e-3, atol=0.0)  # the level rate
+
+
+def test_depth_lit_backscatter_density_never_raises_the_density_and_stays_finite():
+    """``G`` below 1 is read as 1 (the veil never falls); huge and zero gains give finite densities."""
+    sigma = torch.tensor([0.5, 0.2, 1e-3])
+    torch.testing.assert_close(depth_lit_backscatter_density(sigma, torch.tensor([0.5, 1.0, 2.0])), sigma / torch.tensor([1.0, 1.0, 2.0]))
+    extreme = depth_lit_backscatter_density(sigma.float(), torch.tensor([0.0, float("1e38"), 3e38]))
+    assert bool(torch.isfinite(extreme).all()) and bool((extreme >= 0).all())

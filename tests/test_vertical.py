@@ -109,3 +109,17 @@ def test_a_vertical_without_a_direction_is_refused(vertical):
     with pytest.raises(ValueError, match="finite non-zero"):
         medium.set_vertical(vertical)
     assert medium.vertical.tolist() == [0.0, 0.0, 1.0]  # left as it was
+
+
+def test_a_checkpoint_with_one_start_of_the_rise_loads_it_for_every_channel():
+    """Checkpoints from before the rise started per channel hold one ``veil_rise_from``: it loads into
+    all three channels, and the veil is the one that checkpoint rendered."""
+    older = SceneMedium(init_rgb=0.2)
+    older.set_veil_rise(0.1, torch.tensor([1.0, 2.0, 3.0]), 0.5)
+    state = older.state_dict()
+    state["veil_rise_from"] = torch.tensor(0.1)
+    loaded = SceneMedium()
+    loaded.load_state_dict(state)
+    assert loaded.veil_rise_from.tolist() == pytest.approx([0.1, 0.1, 0.1])
+    up = torch.tensor([[0.0, 0.0, 1.0]])
+    torch.testing.assert_close(loaded(up).rgb, older(up).rgb)
