@@ -36,7 +36,7 @@ KINDS = [  # (kind, pattern in the command line), the first that matches
     ("spawned worker (multiprocessing)", r"multiprocessing\.spawn"),
     ("fork server", r"forkserver"),
     ("chromium", r"chromium"),
-    ("pytest (the tests' own thread)", r"-m pytest"),
+    ("pytest (the tests' own process)", r"-m pytest"),
     ("seathru-bench worker", r"seathru_nerfstudio\.bench\.worker"),
     ("seathru-bench", r"seathru_nerfstudio\.bench\.cli|bin/seathru-bench"),
 ]
@@ -53,8 +53,9 @@ def kind_of(command: str) -> str:
     return module.group(1) if module else command[:40]
 
 
-def sample(root: psutil.Process, seen: Dict[int, dict], start: float) -> None:
-    """Add or update every live process of ``root``'s tree in ``seen`` (by pid)."""
+def sample(root: psutil.Process, seen: Dict[tuple, dict], start: float) -> None:
+    """Add or update every live process of ``root``'s tree in ``seen``, by pid and start time (a
+    reused pid is another process)."""
     try:
         processes = [root, *root.children(recursive=True)]
     except psutil.Error:
@@ -63,7 +64,8 @@ def sample(root: psutil.Process, seen: Dict[int, dict], start: float) -> None:
         try:
             with process.oneshot():
                 times = process.cpu_times()
-                record = seen.setdefault(process.pid, {"command": " ".join(process.cmdline()), "start": process.create_time() - start})
+                created = process.create_time()
+                record = seen.setdefault((process.pid, created), {"command": " ".join(process.cmdline()), "start": created - start})
                 record["cpu_s"] = times.user + times.system
                 record["end"] = time.time() - start
         except psutil.Error:
@@ -78,7 +80,7 @@ def main(argv: List[str]) -> int:
     start = time.time()
     child = subprocess.Popen(command)
     root = psutil.Process(child.pid)
-    seen: Dict[int, dict] = {}
+    seen: Dict[tuple, dict] = {}
     while child.poll() is None:
         sample(root, seen, start)
         time.sleep(1.0)
