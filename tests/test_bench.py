@@ -448,3 +448,23 @@ def test_only_json_objects_with_an_event_are_events():
     assert parse_event('{"event": "progress", "step": 3}\n') == {"event": "progress", "step": 3}
     for line in ("1.00\n", "[1, 2]\n", '"text"\n', "null\n", '{"step": 3}\n', "seathru step 300: medium\n", "\n"):
         assert parse_event(line) is None, line
+
+
+def test_an_exact_ceiling_has_no_gap():
+    """Clear air's ceiling inverts nothing (``J = I``): its PSNR is the metric's floor of the error,
+    200 dB, and a gap of −166 dB to it says nothing. A ceiling within the 16-bit data's precision
+    prints "exact ceiling"; one below it keeps its gap."""
+    from seathru_nerfstudio.metrics import psnr
+
+    image = torch.rand(64, 64, 3, generator=torch.Generator().manual_seed(0))
+    exact = psnr(image, image)
+    rounded = psnr(torch.round(image * 65535.0) / 65535.0, image)  # the 16-bit data's own error
+    assert exact > report.EXACT_CEILING_DB and abs(rounded - report.EXACT_CEILING_DB) < 1.0
+
+    def results(ceiling_db: float) -> dict:
+        scores = {"clean_psnr_objects": ceiling_db, "clean_psnr_near_third": ceiling_db}
+        run = {"scene": "s", "method": "m", "evals": [{"metrics": {"clean_psnr_objects": 30.0, "clean_psnr_near_third": 31.0}}]}
+        return {"ceilings": {"s": {"variants": {"ceiling": {"metrics": scores}}}}, "runs": [run]}
+
+    assert report.ceiling_gaps(results(exact))[-1] == "| s | `m` | exact ceiling | exact ceiling |"
+    assert report.ceiling_gaps(results(32.5))[-1] == "| s | `m` | -2.50 | -1.50 |"

@@ -9,6 +9,11 @@ from typing import Any, Dict, List, Optional, Tuple
 
 from seathru_nerfstudio.bench import scoring
 
+EXACT_CEILING_DB = 10.0 * math.log10(12.0 * 65535.0**2)
+"""107.2 dB, the PSNR of rounding a linear image to 16 bits (error variance ``(1/65535)² / 12``): a
+ceiling above it reproduces ``J`` to the data's own precision (clear air, where ``J = I``), so
+there is no gap to it worth printing."""
+
 # (key in an eval record, column title, better: "high"/"low", format)
 IMAGE_COLUMNS: List[Tuple[str, str, str, str]] = [
     ("psnr", "PSNR", "high", "{:.2f}"),
@@ -150,7 +155,8 @@ def ceiling_table(record: Dict[str, Any]) -> str:
 
 def ceiling_gaps(results: Dict[str, Any]) -> List[str]:
     """Each run's final J scores minus its scene's ceiling (dB; ≤ 0 unless a method beats the
-    model's inversion), as markdown lines."""
+    model's inversion), as markdown lines. Where the inversion is exact (above
+    :data:`EXACT_CEILING_DB`; clear air, where ``J = I``) there is no gap to measure, and the cell says so."""
     ceilings = results.get("ceilings") or {}
     lines = ["| scene | method | J objects − ceiling | J near third − ceiling |", "|---|---|---|---|"]
     for run in results.get("runs", []):
@@ -161,6 +167,9 @@ def ceiling_gaps(results: Dict[str, Any]) -> List[str]:
         gaps = []
         for key in CEILING_SCORES:
             ours, best = _metric(final, key), _metric(top, key)
+            if best is not None and best >= EXACT_CEILING_DB:
+                gaps.append("exact ceiling")
+                continue
             gaps.append(_fmt(None if ours is None or best is None else ours - best, "{:+.2f}"))
         lines.append(f"| {run['scene']} | `{run['method']}` | {gaps[0]} | {gaps[1]} |")
     return lines if len(lines) > 2 else []
