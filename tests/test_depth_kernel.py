@@ -113,3 +113,98 @@ def test_clear_air_weighs_the_sfm_depths_by_its_own_weight():
     model.config.clear_air_depth_loss_mult = 0.0
     out = model(bundle)
     assert "depth_loss" not in model.get_loss_dict(out, batch, model.get_metrics_dict(out, batch))
+
+
+def _one_ray_samples(edges):
+    from nerfstudio.cameras.rays import Frustums, RaySamples
+
+    starts, ends = _intervals(edges)
+    count = starts.shape[-2]
+    frustums = Frustums(
+        origins=torch.zeros(1, count, 3),
+        directions=torch.tensor([0.0, 0.0, 1.0]).expand(1, count, 3),
+        starts=starts,
+        ends=ends,
+        pixel_area=torch.full((1, count, 1), 1e-4),
+    )
+    return RaySamples(frustums=frustums), starts, ends
+
+
+def test_the_outlier_mixture_is_the_ds_nerf_loss_on_mixed_weights():
+    """Closed form: ``-sum_i k_i l_i log((1 - π) w_i + π / S)`` up to the constant
+    ``-sum_i k_i l_i log(1 - π)``, with ``k_i`` the kernel at the midpoints and ``l_i`` the lengths;
+    ``π = 0`` is nerfstudio's DS-NeRF loss."""
+    from seathru_nerfstudio.losses import sfm_depth_loss
+
+    samples, starts, ends = _one_ray_samples(torch.arange(0.0, 8.01, 0.5))
+    count = starts.shape[-2]
+    weights = torch.softmax(torch.linspace(-3.0, 2.0, count), 0).view(1, count, 1)
+    depth = torch.tensor([[3.3]])
+    arguments = dict(weights=weights, ray_samples=samples, expected_depth=depth, known_depth=depth,
+                     directions_norm=torch.ones(1, 1), sigma_floor=0.02)
+    variance = depth_kernel_variance(starts, ends, depth, 0.02)
+    kernel = torch.exp(-((0.5 * (starts + ends) - 3.3) ** 2) / (2 * variance)) * (ends - starts)
+    for outlier in (0.0, 0.05, 0.5):
+        mixed = (1 - outlier) * weights + outlier / count
+        expected = -(kernel * torch.log(mixed + (1e-7 if outlier == 0 else 0.0))).sum() + (
+            kernel.sum() * torch.log(torch.tensor(1.0 - outlier))
+        )
+        got = sfm_depth_loss(**arguments, outlier_probability=outlier)
+        torch.testing.assert_close(got, expected, rtol=1e-5, atol=1e-6)
+    plain = ds_nerf_depth_loss(weights, depth, 0.5 * (starts + ends), ends - starts, variance)
+    torch.testing.assert_close(sfm_depth_loss(**arguments, outlier_probability=0.0), plain)
+
+
+def test_the_outlier_mixture_bounds_the_pull_where_the_weights_miss_the_depth():
+    """Weights that put nothing at the known depth (an SfM point behind the surface): DS-NeRF's
+    pull ``k_i l_i / w_i`` is 1e7 times the kernel; the mixture's is at most ``k_i l_i S (1 - π) / π``.
+    The gradient matches a finite difference."""
+    from seathru_nerfstudio.losses import sfm_depth_loss
+
+    samples, starts, ends = _one_ray_samples(torch.arange(0.0, 8.01, 0.5))
+    count = starts.shape[-2]
+    depth = torch.tensor([[6.2]])
+    kernel = torch.exp(
+        -((0.5 * (starts + ends) - 6.2) ** 2) / (2 * depth_kernel_variance(starts, ends, depth, 0.02))
+    ) * (ends - starts)
+
+    def pull(outlier, weights):
+        weights = weights.clone().requires_grad_(True)
+        sfm_depth_loss(weights, samples, depth, depth, torch.ones(1, 1), 0.02, outlier_probability=outlier).backward()
+        return -weights.grad
+
+    surface = torch.zeros(1, count, 1, dtype=torch.float32)
+    surface[0, 4] = 1.0  # everything at 2.25, nothing at 6.2
+    bound = kernel * count * (1 - 0.05) / 0.05
+    mixed = pull(0.05, surface)
+    assert (mixed <= bound * (1 + 1e-5)).all() and mixed.max() > 0.5 * bound.max()
+    plain = pull(0.0, surface)  # nerfstudio's -log(w + 1e-7): a pull of k_i l_i / 1e-7 on the empty samples
+    peak = int(torch.argmax(kernel))
+    torch.testing.assert_close(plain[0, peak], kernel[0, peak] / 1e-7, rtol=1e-3, atol=0.0)
+    assert plain.max() > 1e4 * mixed.max()
+    # The gradient of the mixture against a central difference, in float64, at a weight inside the kernel.
+    weights = torch.full((1, count, 1), 0.01, dtype=torch.float64)
+    index, step = int(torch.argmax(kernel)), 1e-6
+    samples, _, _ = _one_ray_samples(torch.arange(0.0, 8.01, 0.5, dtype=torch.float64))
+    depth = depth.double()
+
+    def loss(w):
+        return sfm_depth_loss(w, samples, depth, depth, torch.ones(1, 1, dtype=torch.float64), 0.02, outlier_probability=0.05)
+
+    up, down = weights.clone(), weights.clone()
+    up[0, index] += step
+    down[0, index] -= step
+    numeric = (loss(up) - loss(down)) / (2 * step)
+    torch.testing.assert_close(-pull(0.05, weights)[0, index, 0], numeric, rtol=1e-5, atol=1e-9)
+
+
+def test_an_outlier_probability_outside_zero_to_one_is_rejected():
+    import pytest
+
+    from seathru_nerfstudio.losses import sfm_depth_loss
+
+    samples, starts, _ = _one_ray_samples(torch.arange(0.0, 2.01, 0.5))
+    weights = torch.full((1, starts.shape[-2], 1), 0.25)
+    for outlier in (-0.1, 1.0):
+        with pytest.raises(ValueError, match="outlier_probability"):
+            sfm_depth_loss(weights, samples, torch.ones(1, 1), torch.ones(1, 1), torch.ones(1, 1), 0.02, outlier_probability=outlier)
