@@ -97,16 +97,9 @@ def sfm_depth_loss(
     sigma_floor: float,
     is_euclidean: bool = False,
     accumulation: Optional[Float[Tensor, "*batch 1"]] = None,
-    outlier_probability: float = 0.0,
 ) -> Float[Tensor, ""]:
     """nerfstudio's DS-NeRF depth loss on the object weights, averaged over the rays whose depth is
     known (not over the batch, so its weight does not depend on how sparse the SfM points are).
-
-    ``outlier_probability`` ``π``: the chance that a known depth is wrong (a mismatched or occluded SfM
-    observation), in which case it says nothing about where the ray ends: the loss reads the mixture
-    ``(1 - π) w_i + π / S`` over the ray's ``S`` samples, computed as ``w_i + π / ((1 - π) S)`` (the
-    factor ``1 - π`` only shifts the loss). DS-NeRF's ``-log w_i`` pulls with ``1 / w_i``, without bound
-    where the weights put nothing at the known depth; the mixture bounds the pull at ``S (1 - π) / π``.
 
     ``known_depth``: z-depth in scene units, 0 where unknown (``is_euclidean``: the range, ``inf``
     for open water, whose object opacity ``accumulation`` is then pushed to 0). The kernel's
@@ -117,11 +110,8 @@ def sfm_depth_loss(
     frustums = ray_samples.frustums
     ray_range = termination if is_euclidean else termination * directions_norm
     variance = depth_kernel_variance(frustums.starts, frustums.ends, ray_range, sigma_floor)
-    if not 0.0 <= outlier_probability < 1.0:
-        raise ValueError(f"outlier_probability must be in [0, 1), got {outlier_probability}")
-    floor = outlier_probability / ((1.0 - outlier_probability) * weights.shape[-2])
     loss = depth_loss(
-        weights=weights + floor,
+        weights=weights,
         ray_samples=ray_samples,
         termination_depth=termination,
         predicted_depth=expected_depth,

@@ -415,7 +415,6 @@ class SeathruModel(NerfactoModel):
             sigma_floor=self.config.research.depth_sigma * self.world_scale,
             is_euclidean=is_euclidean,
             accumulation=outputs["accumulation"],
-            outlier_probability=self.config.research.depth_outlier_probability,
         )
 
     def get_image_metrics_and_images(

@@ -59,8 +59,6 @@ class ResearchConfig(PrintableConfig):
     """Scale of the two Laplacians of the binary prior."""
     depth_sigma: float = 0.02
     """Floor of the depth loss's kernel width, metres; it widens to the sample interval at the depth."""
-    depth_outlier_probability: float = 0.05
-    """Chance that an SfM depth is wrong: bounds the depth loss's pull where the weights miss it."""
     rawnerf_eps: float = 1e-3
     """Epsilon of RawNeRF's relative loss."""
 
