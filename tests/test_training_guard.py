@@ -184,3 +184,70 @@ def test_the_guard_can_be_switched_off(scene, tmp_path):
     trainer.config.guard.enabled = False
     plain = trainer.config.setup(local_rank=0, world_size=1)
     assert plain.guard is None and not isinstance(plain.grad_scaler, GuardedGradScaler)
+
+
+def inject_scale(trainer: SeathruTrainer, when: Callable[[int], bool], factor: float) -> None:
+    """Every loss term times ``factor`` (finite) in the training steps where ``when(step)``."""
+    model = trainer.pipeline.model
+    original = model.get_loss_dict
+
+    def scaled(*args, **kwargs):
+        losses = original(*args, **kwargs)
+        if model.training and when(trainer.step):
+            return {name: value * factor for name, value in losses.items()}
+        return losses
+
+    model.get_loss_dict = scaled
+
+
+def test_a_loss_spike_is_skipped_like_a_nan_step(scene, tmp_path, capsys):
+    """One batch whose loss is far above the recent median is skipped: the parameters (and Adam's
+    state) stay as they were; the non-finite count is not touched."""
+    from seathru_nerfstudio.training import LOSS_SPIKE_WINDOW
+
+    spike = LOSS_SPIKE_WINDOW + 1
+    trainer = make_trainer(scene, tmp_path, spike + 2)
+    inject_scale(trainer, lambda step: step == spike, 1e3)
+    params = snapshot_each_step(trainer)
+    trainer.train()
+
+    assert trainer.guard.spike_skipped_steps == [spike]
+    assert trainer.guard.skipped_steps == [] and trainer.guard.consecutive_bad_steps == 0
+    for name, value in params[spike].items():
+        assert torch.equal(value, params[spike + 1][name]), f"{name} changed in the skipped step"
+    out = capsys.readouterr().out
+    assert f"step {spike}: optimiser step skipped" in out and "loss spike" in out
+
+
+def _guard_steps(guard, losses):
+    """Feed ``losses`` to ``guard`` as successive steps (one parameter with a finite gradient);
+    the steps it skipped."""
+    parameter = torch.nn.Parameter(torch.zeros(2))
+    parameter.grad = torch.ones(2)
+    skipped = []
+    for step, loss in enumerate(losses):
+        guard.start_step()
+        guard.record_loss(torch.tensor(loss))
+        if guard.decide({"fields": [parameter]}, ["fields"]):
+            skipped.append(step)
+        guard.finish_step(step, {"rgb_loss": torch.tensor(loss)}, None)
+    return skipped
+
+
+def test_a_lasting_change_of_the_loss_level_is_followed_within_half_a_window():
+    """The median window holds skipped steps too: a loss that jumps 100× and stays there is
+    skipped for at most half a window, then trained on; a jump under the ratio is never skipped;
+    ratio 0 switches the check off."""
+    from seathru_nerfstudio.training import LOSS_SPIKE_WINDOW, NonFiniteGuard, NonFiniteGuardConfig
+
+    generator = torch.Generator().manual_seed(0)
+    calm = (0.02 * (1 + 0.3 * torch.rand(LOSS_SPIKE_WINDOW, generator=generator))).tolist()
+    guard = NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=10.0))
+    skipped = _guard_steps(guard, calm + [2.0] * (2 * LOSS_SPIKE_WINDOW))
+    first = LOSS_SPIKE_WINDOW
+    assert skipped == list(range(first, first + len(skipped))) and 1 <= len(skipped) <= LOSS_SPIKE_WINDOW // 2 + 1
+    assert guard.skipped_steps == [] and guard.consecutive_bad_steps == 0
+    assert _guard_steps(NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=10.0)), calm + [0.15] * 5) == []
+    assert _guard_steps(NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=0.0)), calm + [2.0] * 5) == []
+    with pytest.raises(ValueError, match="loss_spike_ratio"):
+        NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=0.5))
