@@ -193,8 +193,9 @@ class NonFiniteGuard:
             flags.append(torch.isfinite(torch.stack([g.sum() for g in grads])).all() if grads else None)
         flags.append(self._loss_finite)
         self._spike_limit = None
-        if self.config.loss_spike_ratio > 0 and len(self.recent_losses) == LOSS_SPIKE_WINDOW and self._loss is not None:
-            self._spike_limit = self.config.loss_spike_ratio * statistics.median(self.recent_losses)
+        median = statistics.median(self.recent_losses) if len(self.recent_losses) == LOSS_SPIKE_WINDOW else 0.0
+        if self.config.loss_spike_ratio > 0 and median > 0 and self._loss is not None:  # a ratio needs a positive level
+            self._spike_limit = self.config.loss_spike_ratio * median
             flags.append((self._loss <= self._spike_limit).all())
         local = torch.stack([torch.ones((), dtype=torch.bool, device=device) if f is None else f.to(device) for f in flags])
         local = local.to(torch.int32)

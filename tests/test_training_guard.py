@@ -249,5 +249,8 @@ def test_a_lasting_change_of_the_loss_level_is_followed_within_half_a_window():
     assert guard.skipped_steps == [] and guard.consecutive_bad_steps == 0
     assert _guard_steps(NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=10.0)), calm + [0.15] * 5) == []
     assert _guard_steps(NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=0.0)), calm + [2.0] * 5) == []
+    # a level at or below zero (a loss with negative terms) has no ratio: nothing is a spike there
+    negative = [-value for value in calm]
+    assert _guard_steps(NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=10.0)), negative + [0.5] * 5) == []
     with pytest.raises(ValueError, match="loss_spike_ratio"):
         NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=0.5))
