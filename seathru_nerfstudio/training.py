@@ -43,6 +43,7 @@ nerfstudio, without changing its training loop or its checkpoint format:
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import statistics
 from collections import deque
@@ -194,9 +195,11 @@ class NonFiniteGuard:
         flags.append(self._loss_finite)
         self._spike_limit = None
         median = statistics.median(self.recent_losses) if len(self.recent_losses) == LOSS_SPIKE_WINDOW else 0.0
+        spike_free = None  # one flag on every rank, checked or not, so the all-reduce has one size
         if self.config.loss_spike_ratio > 0 and median > 0 and self._loss is not None:  # a ratio needs a positive level
             self._spike_limit = self.config.loss_spike_ratio * median
-            flags.append((self._loss <= self._spike_limit).all())
+            spike_free = (self._loss <= self._spike_limit).all()
+        flags.append(spike_free)
         local = torch.stack([torch.ones((), dtype=torch.bool, device=device) if f is None else f.to(device) for f in flags])
         local = local.to(torch.int32)
         combined = local
@@ -215,7 +218,7 @@ class NonFiniteGuard:
     def finish_step(self, step: int, loss_dict: Dict[str, torch.Tensor], last_checkpoint: Optional[Path]) -> None:
         """Warn about a skipped step and stop after too many in a row."""
         loss = float(self._loss) if self._loss is not None and self._loss.numel() == 1 else float("nan")
-        if loss == loss and abs(loss) != float("inf"):
+        if math.isfinite(loss):
             self.recent_losses.append(loss)  # skipped or not: a lasting change of level is followed
         if not self._decided:
             # no parameter group stepped (gradient accumulation): a non-finite loss has poisoned

@@ -218,3 +218,41 @@ def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     assert torch.all(slope0 > 0)  # the brighter water is the higher
     assert r0["restored"] == (10, 10) and r1["restored"] == (0, 0)
     assert r0["above_level_rays"] == r1["above_level_rays"] == 30  # rank 1's rays, above the level, counted on both
+
+
+def _guard_on_rank(local_rank: int, dist_url: str, out: str) -> None:
+    from datetime import timedelta
+
+    from seathru_nerfstudio.training import LOSS_SPIKE_WINDOW, NonFiniteGuard, NonFiniteGuardConfig
+
+    torch.set_num_threads(1)
+    dist.init_process_group("gloo", init_method=dist_url, world_size=WORLD, rank=local_rank, timeout=timedelta(seconds=60))
+    try:
+        guard = NonFiniteGuard(NonFiniteGuardConfig(loss_spike_ratio=10.0), world_size=WORLD)
+        parameter = torch.nn.Parameter(torch.zeros(3))
+        # rank 0 has a full window at a positive level (checked); rank 1 a negative level (unchecked)
+        level = 0.02 if local_rank == 0 else -0.02
+        losses = [level] * LOSS_SPIKE_WINDOW + [(2.0, 0.0)[local_rank]]
+        skipped = []
+        for step, loss in enumerate(losses):
+            guard.start_step()
+            parameter.grad = torch.ones(3)
+            guard.record_loss(torch.tensor(loss))
+            if guard.decide({"fields": [parameter]}, ["fields"]):
+                skipped.append(step)
+            guard.finish_step(step, {"rgb_loss": torch.tensor(loss)}, None)
+        torch.save({"skipped": skipped, "spikes": guard.spike_skipped_steps}, Path(out) / f"guard{local_rank}.pt")
+    finally:
+        dist.destroy_process_group()
+
+
+def test_a_loss_spike_on_one_rank_skips_the_step_on_every_rank(tmp_path):
+    """Rank 0 checks for a spike (a positive median) and sees one; rank 1 does not check (its
+    median is negative). Both all-reduce a flag vector of one size, and both skip that step."""
+    from seathru_nerfstudio.distributed import free_local_url
+    from seathru_nerfstudio.training import LOSS_SPIKE_WINDOW
+
+    mp.spawn(_guard_on_rank, args=(free_local_url(), str(tmp_path)), nprocs=WORLD, join=True)
+    r0, r1 = (torch.load(tmp_path / f"guard{r}.pt") for r in range(WORLD))
+    assert r0["skipped"] == r1["skipped"] == [LOSS_SPIKE_WINDOW]
+    assert r0["spikes"] == r1["spikes"] == [LOSS_SPIKE_WINDOW]
