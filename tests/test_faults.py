@@ -8,7 +8,8 @@ the run left alive afterwards.
 The cases that stop at set-up run the commands' entry points through :mod:`forked_cli` (a fork
 server that has imported nerfstudio once: ~10 s saved per case). The cases about processes run
 the installed console scripts themselves, in the background from the start of the suite
-(``BACKGROUND_JOBS``), while the other tests run: a run that finishes (no staging folder left), the viewer stopped with SIGTERM,
+(``BACKGROUND_JOBS``), while the other tests run: a run that finishes (no staging folder left), the viewer on it
+(no data-loading worker: nothing trains) stopped with SIGTERM,
 ns-train killed with SIGKILL (its data-loading worker must go too), and the data-loading worker
 killed under a training run (the run must end with that error instead of waiting forever).
 """
@@ -127,9 +128,9 @@ def finished_run_then_viewer(root: Path) -> Dict:
     result["left_in_run_dir"] = sorted(p.name for p in run_dir.iterdir()) if run_dir.is_dir() else []
     viewer = start([str(BIN / "seathru-viewer"), "--load-config", str(run_dir / "config.yml")], root, "viewer.log")
     try:
-        # the worker prints "Loading data batch" from its run(), after it has started to follow its parent
-        wait_for(lambda: "Loading data batch" in (root / "viewer.log").read_text(errors="replace"), viewer, "the worker's start")
-        assert data_worker(viewer.pid) is not None
+        # viser's banner: the model is loaded and the viewer serves
+        wait_for(lambda: "ws://" in (root / "viewer.log").read_text(errors="replace"), viewer, "the viewer's start")
+        result["viewer_data_worker"] = data_worker(viewer.pid)
         family = children_of(viewer.pid)
         viewer.send_signal(signal.SIGTERM)
         viewer.wait(60)
@@ -373,7 +374,9 @@ def test_a_finished_run_leaves_no_staging_folder(background) -> None:
     assert not [name for name in result["left_in_run_dir"] if name.startswith(".")], result["left_in_run_dir"]
 
 
-def test_sigterm_of_the_viewer_leaves_no_process(background) -> None:
+def test_the_viewer_of_a_finished_run_starts_no_data_worker_and_sigterm_leaves_no_process(background) -> None:
+    """Nothing trains there, so no training rays are sampled (``data/datamanager.py``)."""
+    assert background["finished"]["viewer_data_worker"] is None
     assert background["finished"]["viewer_left"] == []
 
 

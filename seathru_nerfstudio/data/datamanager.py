@@ -19,6 +19,14 @@ go wrong with it:
   (``prctl(PR_SET_PDEATHSIG)``; only used when the main thread starts it, the thread nerfstudio's
   commands build the pipeline in), and everywhere a thread in it exits when its parent process has
   changed (polled every :data:`WATCHDOG_PERIOD_S` seconds).
+
+And one thing it costs for nothing: **commands that only evaluate start a worker too.** Every
+data manager starts its training workers when it is built, also the one ``eval_setup`` builds for
+``ns-eval``, ``ns-render``, ``ns-export``, ``ns-viewer`` and ``seathru-medium``, which never ask
+for a training batch. Such a worker imports nerfstudio again (under a console script, the whole of
+``ns-*``'s start-up, as ``__mp_main__``) and holds a copy of every training image. Here the
+workers start when a trainer builds the data manager (``test_mode="val"``), or otherwise at the
+first training batch asked for.
 """
 
 from __future__ import annotations
@@ -128,9 +136,22 @@ class SeathruDataManager(ParallelDataManager[LinearImageDataset]):
     whose death ends the run with its error (see the module docstring)."""
 
     def setup_train(self) -> None:
-        """As nerfstudio's, with :class:`FollowingDataProcessor` workers."""
+        """As nerfstudio's, with :class:`FollowingDataProcessor` workers, started now only for a
+        trainer (``test_mode="val"``); a data manager built to evaluate starts them at the first
+        training batch asked for (see the module docstring)."""
         assert self.train_dataset is not None
+        if self.config.num_processes < 1:
+            raise InputError(
+                f"--pipeline.datamanager.num-processes {self.config.num_processes}: at least one data-loading "
+                "worker is needed (the training rays are sampled in it)"
+            )
         self.train_pixel_sampler = self._get_pixel_sampler(self.train_dataset, self.config.train_num_rays_per_batch)
+        self.data_procs = []
+        if self.test_mode == "val":
+            self._start_workers()
+
+    def _start_workers(self) -> None:
+        """Start ``num_processes`` :class:`FollowingDataProcessor` workers on a fresh queue."""
         self.data_queue = mp.Queue(maxsize=self.config.queue_size)  # type: ignore[attr-defined]
         in_main_thread = threading.current_thread() is threading.main_thread()
         self.data_procs = [
@@ -151,6 +172,8 @@ class SeathruDataManager(ParallelDataManager[LinearImageDataset]):
     def next_train(self, step: int) -> Tuple[RayBundle, Dict]:
         """The next batch from the workers; raises the error of a worker that has ended."""
         self.train_count += 1
+        if not self.data_procs:
+            self._start_workers()
         bundle, batch = self._next_from_workers()
         return bundle.to(self.device), batch
 
