@@ -83,7 +83,7 @@ def _start_in_background(root: Path, tmp_path_factory, run_jobs: Sequence[Callab
         config = _background["run"].result()["config"]
         output = root / "eval" / "eval.json"
         output.parent.mkdir()
-        tiny_checkpoint.run(tiny_checkpoint.BIN / "ns-eval", "--load-config", config, "--output-path", output, cwd=output.parent)
+        tiny_checkpoint.run("ns-eval", "--load-config", config, "--output-path", output, cwd=output.parent)
         return json.loads(output.read_text())["results"]
 
     def on_the_run(job: Callable[[dict, Path], Any]) -> Any:
