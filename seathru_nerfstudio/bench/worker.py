@@ -10,7 +10,8 @@ fresh interpreter and data-loader process.
 
 The training stack (nerfstudio's trainer, the methods, the metrics) is imported inside the
 functions that use it: the data-loading worker the trainer spawns imports this module again as
-``__mp_main__``, and needs none of it (its start-up: 2.9 CPU-s against 7.3 with them at the top).
+``__mp_main__``, and needs none of it (on a 2-core CPU, alone: the modules it needs take about 2.7
+CPU-s to import, this module with the training stack at its top 6.6).
 """
 
 from __future__ import annotations
