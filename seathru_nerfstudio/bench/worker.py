@@ -30,7 +30,6 @@ import numpy as np
 import torch
 
 
-
 def _emit(event: str, **payload: Any) -> None:
     sys.stdout.write(json.dumps({"event": event, **payload}) + "\n")
     sys.stdout.flush()
