@@ -21,10 +21,9 @@ from pathlib import Path
 
 import torch
 
+from seathru_nerfstudio.medium_start import OpenWaterColour
+
 SUMS_KEY = "_model.open_water_colour._extra_state"
-ABOVE_LEVEL = slice(11, 20)
-"""Where ``OpenWaterColour.get_extra_state`` packs the sums over the open rays above the level: count, colour (3),
-up times colour (3), up, up squared."""
 
 
 def ratios(values: torch.Tensor, reference: torch.Tensor) -> str:
@@ -37,10 +36,11 @@ def main(folders: list[str]) -> None:
         if not checkpoints:
             print(f"{folder}: no seathru-nerf-lite checkpoint (run seathru-bench with --save-model)")
             continue
-        sums = torch.load(checkpoints[-1], map_location="cpu", weights_only=False)["pipeline"][SUMS_KEY]
+        sums = OpenWaterColour()
+        sums.set_extra_state(torch.load(checkpoints[-1], map_location="cpu", weights_only=False)["pipeline"][SUMS_KEY])
         scene = Path(json.loads((folder / "results.json").read_text())["runs"][0]["scene_path"])
         best_fit = torch.tensor(json.loads((scene / "ground_truth" / "medium.json").read_text())["B_inf"], dtype=torch.float64)
-        above = sums[ABOVE_LEVEL].double()
+        above = sums.above_level  # count, colour (3), up times colour (3), up, up squared
         count = float(above[0])
         if count < 2:
             print(f"{folder}: no open rays above the level")
