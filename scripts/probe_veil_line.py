@@ -39,14 +39,17 @@ def main(folders: list[str]) -> None:
         sums = OpenWaterColour()
         sums.set_extra_state(torch.load(checkpoints[-1], map_location="cpu", weights_only=False)["pipeline"][SUMS_KEY])
         scene = Path(json.loads((folder / "results.json").read_text())["runs"][0]["scene_path"])
-        best_fit = torch.tensor(json.loads((scene / "ground_truth" / "medium.json").read_text())["B_inf"], dtype=torch.float64)
-        above = sums.above_level  # count, colour (3), up times colour (3), up, up squared
-        count = float(above[0])
-        if count < 2:
-            print(f"{folder}: no open rays above the level")
+        truth = scene / "ground_truth" / "medium.json"
+        if not truth.is_file():
+            print(f"{truth}: missing (a scene with ground truth is needed)")
             continue
-        colour, up = above[1:4] / count, float(above[7]) / count
-        slope = (above[4:7] / count - up * colour) / (float(above[8]) / count - up**2)
+        best_fit = torch.tensor(json.loads(truth.read_text())["B_inf"], dtype=torch.float64)
+        line = sums.line_above_level()
+        if line is None:
+            print(f"{folder}: too few open rays above the level for a line")
+            continue
+        up, colour, slope = line
+        count = float(sums.above_level[0])
         print(f"{folder} ({checkpoints[-1].name}): {count:.0f} open rays above the level, mean sin(elevation) {up:.3f}")
         print(f"  their mean colour / best-fit B_inf:    {ratios(colour, best_fit)}")
         print(f"  their line at the level / best-fit B_inf: {ratios(colour - slope * up, best_fit)}")

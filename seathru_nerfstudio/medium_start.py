@@ -189,6 +189,21 @@ class OpenWaterColour(torch.nn.Module):
             return None
         return self.total / self.open_rays
 
+    def line_above_level(self) -> Optional[Tuple[float, Float[Tensor, "3"], Float[Tensor, "3"]]]:
+        """``(mean up, mean colour, slope)`` of the open rays above the level plane (``up > 0``): the
+        least-squares line ``colour = mean colour + slope (up − mean up)``, per channel. ``None`` where
+        fewer than :data:`MIN_OPEN_FRACTION` of the open rays look up, or their ``up`` spreads by under
+        1e-4 (standard deviation; the slope's denominator is its square)."""
+        count = float(self.above_level[0])
+        if count <= 0 or count < MIN_OPEN_FRACTION * self.open_rays:
+            return None
+        up_above = float(self.above_level[7]) / count
+        spread = float(self.above_level[8]) / count - up_above**2
+        if spread < 1e-8:
+            return None
+        colour_above = self.above_level[1:4] / count
+        return up_above, colour_above, (self.above_level[4:7] / count - up_above * colour_above) / spread
+
     def rise(self) -> Optional[Tuple[Float[Tensor, "3"], Float[Tensor, "3"], float]]:
         """``(start, slope, highest up)``, or ``None`` where :meth:`mean` is: the veil rises from ``start``
         (``sin(elevation)``, per channel) by ``slope`` (colour per unit of ``up``) up to the highest
@@ -206,17 +221,13 @@ class OpenWaterColour(torch.nn.Module):
             return None
         n = self.open_rays
         mean_up = float(self.total_up[0]) / n
-        count = float(self.above_level[0])
-        if count > 0 and count >= MIN_OPEN_FRACTION * n:
-            up_above = float(self.above_level[7]) / count
-            spread = float(self.above_level[8]) / count - up_above**2
-            if spread >= 1e-8:
-                colour_above = self.above_level[1:4] / count
-                slope = (self.above_level[4:7] / count - up_above * colour_above) / spread
-                rising = slope > 0
-                crossing = up_above + (mean - colour_above) / torch.where(rising, slope, torch.ones_like(slope))
-                start = torch.where(rising, crossing, torch.full_like(slope, mean_up))
-                return start.clamp(mean_up, max(mean_up, self.highest_up)), slope, self.highest_up
+        line = self.line_above_level()
+        if line is not None:
+            up_above, colour_above, slope = line
+            rising = slope > 0
+            crossing = up_above + (mean - colour_above) / torch.where(rising, slope, torch.ones_like(slope))
+            start = torch.where(rising, crossing, torch.full_like(slope, mean_up))
+            return start.clamp(mean_up, max(mean_up, self.highest_up)), slope, self.highest_up
         spread = float(self.total_up[1]) / n - mean_up**2
         start = torch.full((3,), mean_up, dtype=torch.float64)
         if spread < 1e-8:

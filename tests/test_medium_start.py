@@ -227,6 +227,11 @@ def test_the_open_water_rise_is_the_line_of_the_open_rays_above_the_level():
     estimate.add(above[50:], torch.ones(150, 1), up_above[50:])
     start, fitted, highest = estimate.rise()
     torch.testing.assert_close(fitted, slope.double(), rtol=1e-4, atol=1e-5)
+    # the line itself, through the mean of the rays above the level: at the level ray it is the intercept
+    up_mean, colour_mean, line_slope = estimate.line_above_level()
+    assert up_mean == pytest.approx(float(up_above.double().mean()), rel=1e-6)
+    assert torch.equal(line_slope, fitted)
+    torch.testing.assert_close(colour_mean - line_slope * up_mean, intercept.double(), rtol=1e-4, atol=1e-5)
     mean, mean_up = estimate.mean(), float(torch.cat([up_below, up_above]).double().mean())
     crossing = (mean - intercept.double()) / slope.double()
     expected_start = torch.where(slope > 0, crossing.clamp(min=mean_up), torch.full((3,), mean_up, dtype=torch.float64))
@@ -256,6 +261,7 @@ def test_the_open_water_rise_is_the_line_of_the_open_rays_above_the_level():
     level = OpenWaterColour()
     level.add(above, torch.ones(200, 1), torch.zeros(200, 1))
     assert torch.equal(level.rise()[1], torch.zeros(3, dtype=torch.float64))
+    assert downward.line_above_level() is None and level.line_above_level() is None  # no ray looks up
 
 
 def test_the_open_water_sums_are_in_the_checkpoint_so_a_resumed_first_stage_reads_the_same_veil(tmp_path):
