@@ -97,7 +97,8 @@ class ChoiceRule:
     """``fog`` needs the attenuation's channels within this ratio of each other."""
     grey_backscatter_ratio: float = 1.5
     """... and the backscatter density's within this one: looser, since it also carries the colour
-    of the light that scatters (1.23 fitted on the path-traced fog, whose attenuation is grey)."""
+    of the light that scatters (1.23 fitted on the path-traced fog, whose attenuation is grey). Evidence
+    only: the ``fog`` model keeps a backscatter density per channel."""
     tie_ratio: float = 1.3
     """Without a far range, ``uniform`` needs attenuation and backscatter within this ratio,
     channel by channel."""

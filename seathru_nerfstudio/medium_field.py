@@ -10,7 +10,7 @@ per sample. Three variants share one interface, ``medium(directions) -> MediumOu
 * :class:`FixedMedium`, given constants (an oracle for experiments: the true medium).
 
 Each of them has six densities; :func:`tie` makes the simpler medium models of
-:data:`MEDIUM_MODELS` from them by averaging (``fog``: one attenuation and one backscatter density for all channels,
+:data:`MEDIUM_MODELS` from them by averaging (``fog``: one attenuation for all channels,
 ``uniform``: one per channel for attenuation and backscatter), so that every model has the
 same parameters and a switch between models keeps the medium learned so far.
 """
@@ -47,9 +47,16 @@ MediumModel = Literal["none", "fog", "uniform", "seathru", "basic"]
 """How much medium a scene gets (``SeathruModelConfig.medium_model``):
 
 * ``none``: clear air; nothing is evaluated, ``rgb = clean`` (nerfacto's rendering);
-* ``fog``: wavelength-independent: one attenuation and one backscatter density for all channels
-  (the paper's fog, sec. 3, also ties the two; physically rendered fog does not: with forward
-  scattering its best-fitting backscatter density is 0.72 of its attenuation);
+* ``fog``: one attenuation for all channels (droplets much larger than the wavelength extinguish
+  every colour alike, the paper's sec. 3), and a backscatter density per channel: in the SeaThru model
+  that density also carries how the light that scatters is spread over directions and colours, which is
+  not grey under a blue sky. On path-traced fog (layouts 3 and 4, the SfM observations under the veil the
+  runs held) tying the backscatter too raised the fit's residual 0.6–0.8% over six free densities and
+  took the grey attenuation from 2% to 12% and from 19% to 29% under the truth; tying the attenuation
+  alone moved the residual by under 0.1%
+  (docs/history.md, 2026-12-03 (fog's backscatter per channel)). The paper's fog also ties attenuation
+  to backscatter; physically rendered fog does not (its best-fitting backscatter density is 0.7–0.8 of
+  its attenuation);
 * ``uniform``: one density per channel, shared by attenuation and backscatter;
 * ``seathru``: separate attenuation and backscatter densities per channel (sec. 4.3, "final");
 * ``basic``: the paper's basic model (sec. 4.1, eqs. 11-13: one medium density per channel),
@@ -63,13 +70,16 @@ def tie_matrix(model: str) -> Float[Tensor, "6 K"]:
     """0/1 matrix from the ``K`` densities ``model`` keeps free to ``(β_D RGB, β_B RGB)``: the one
     table of which densities a medium model keeps equal, for rendering (:func:`tie`) and for the
     fit (:mod:`seathru_nerfstudio.medium_fit`). ``seathru`` six free, ``uniform`` and ``basic`` one
-    per channel, ``fog`` one attenuation and one backscatter density for all channels."""
+    per channel, ``fog`` one attenuation for all channels and a backscatter density per channel."""
     if model == "seathru":
         return torch.eye(6, dtype=torch.float64)
     if model in ("uniform", "basic"):
         return torch.cat([torch.eye(3, dtype=torch.float64)] * 2)
-    if model == "fog":  # one grey attenuation, one grey backscatter density
-        return torch.repeat_interleave(torch.eye(2, dtype=torch.float64), 3, dim=0)
+    if model == "fog":  # one grey attenuation; the backscatter density per channel
+        matrix = torch.zeros(6, 4, dtype=torch.float64)
+        matrix[:3, 0] = 1.0
+        matrix[3:, 1:] = torch.eye(3, dtype=torch.float64)
+        return matrix
     raise ValueError(f"tie_matrix: no medium densities for model {model!r}; expected one of {MEDIUM_MODELS[1:]}")
 
 
@@ -79,7 +89,7 @@ FREE_DENSITIES: Dict[str, int] = {"none": 0, **{model: tie_matrix(model).shape[1
 
 def tie(medium: "MediumOutputs", model: str) -> "MediumOutputs":
     """``medium`` with its densities tied as ``model`` asks (:func:`tie_matrix`), each to the
-    mean of its group: ``fog`` gives every channel the mean attenuation and the mean backscatter,
+    mean of its group: ``fog`` gives every channel the mean attenuation,
     ``uniform`` and ``basic`` give attenuation and backscatter their per-channel mean, ``seathru``
     keeps them. (``none`` has no medium: the model never calls this for it.) With tied inputs
     the result is the input. Selections, sums and a gather (no product with the 0/1 matrix, so no

@@ -97,9 +97,9 @@ def test_tie_averages_the_densities_as_each_model_asks():
     medium = MediumOutputs(
         rgb=torch.rand(5, 3, generator=gen), sigma_attn=torch.rand(5, 3, generator=gen), sigma_bs=torch.rand(5, 3, generator=gen)
     )
-    fog = tie(medium, "fog")  # grey: each kind of density averaged over the channels
+    fog = tie(medium, "fog")  # grey attenuation: averaged over the channels; the backscatter density kept
     torch.testing.assert_close(fog.sigma_attn, medium.sigma_attn.mean(dim=-1, keepdim=True).expand(5, 3))
-    torch.testing.assert_close(fog.sigma_bs, medium.sigma_bs.mean(dim=-1, keepdim=True).expand(5, 3))
+    assert torch.equal(fog.sigma_bs, medium.sigma_bs)
     for name in ("uniform", "basic"):
         tied = tie(medium, name)
         torch.testing.assert_close(tied.sigma_attn, (medium.sigma_attn + medium.sigma_bs) / 2)
@@ -124,7 +124,7 @@ def test_fog_and_uniform_reduce_exactly_to_seathru_with_tied_parameters(name):
     with torch.no_grad():
         raw = tied.medium_field.density_raw
         if name == "fog":
-            raw[:3], raw[3:] = 0.3, -0.2
+            raw[:3], raw[3:] = 0.3, torch.tensor([-0.2, 0.4, -0.9])
         else:
             raw[3:] = raw[:3] = torch.tensor([0.1, -0.4, 0.7])
         state = {key: value for key, value in tied.state_dict().items() if key != "medium_model_code"}
