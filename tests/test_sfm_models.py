@@ -1,0 +1,67 @@
+"""Which of the mapper's models is kept, and how far two models orient their cameras apart
+(``data/sfm_models.py``): closed forms on rotations, and the ranking on counted tracks."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from seathru_nerfstudio.data.sfm_models import model_rank, num_observations, rotation_disagreement_deg
+
+
+def _cameras(n: int, seed: int) -> np.ndarray:
+    return Rotation.random(n, random_state=seed).as_matrix()
+
+
+def test_a_change_of_gauge_is_no_disagreement() -> None:
+    """The same cameras seen in another world frame (every camera turned by one G) agree: 0 degrees
+    (to rounding)."""
+    cameras = _cameras(12, 0)
+    gauge = Rotation.random(random_state=1).as_matrix()
+    assert rotation_disagreement_deg(cameras, cameras @ gauge) < 1e-6
+    assert rotation_disagreement_deg(cameras, cameras) < 1e-9
+
+
+@pytest.mark.parametrize("theta_deg", [1e-5, 0.3, 5.0, 60.0, 170.0])
+def test_two_halves_turned_apart_disagree_by_half_the_angle_each(theta_deg: float) -> None:
+    """Half the cameras turned by theta about one axis against the other half (and the whole
+    model in another gauge): the nearest common gauge lies half-way, so every camera, and the
+    median, is theta / 2 off. Holds to the last digits for theta near 0, where an arccos of
+    the trace would lose them."""
+    cameras = _cameras(10, 2)
+    gauge = Rotation.random(random_state=3).as_matrix()
+    turn = Rotation.from_rotvec(np.radians(theta_deg) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    other = cameras @ gauge
+    other[5:] = cameras[5:] @ turn @ gauge
+    assert rotation_disagreement_deg(cameras, other) == pytest.approx(theta_deg / 2, rel=1e-6)
+    assert rotation_disagreement_deg(other, cameras) == pytest.approx(theta_deg / 2, rel=1e-6)
+
+
+def test_one_camera_off_does_not_move_the_median() -> None:
+    """The median is robust: one of nine cameras turned by 30 degrees leaves it near 0 (the
+    gauge moves by a ninth of the turn at most, so the others are under 30/9 degrees off)."""
+    cameras = _cameras(9, 4)
+    other = cameras.copy()
+    other[0] = cameras[0] @ Rotation.from_rotvec([0.0, np.radians(30.0), 0.0]).as_matrix()
+    assert 0.0 < rotation_disagreement_deg(cameras, other) < 30.0 / 9
+
+
+def _model(num_images: int, track_lengths: list[int]) -> SimpleNamespace:
+    """What model_rank reads of a pycolmap Reconstruction."""
+    points = {k: SimpleNamespace(track=SimpleNamespace(length=lambda n=n: n)) for k, n in enumerate(track_lengths)}
+    return SimpleNamespace(points3D=points, num_reg_images=lambda: num_images)
+
+
+def test_models_rank_by_images_then_by_observations() -> None:
+    """More registered images wins whatever the tracks; with the same images, the model that
+    keeps more observations (the summed track lengths) wins, however they are spread over points."""
+    assert num_observations(_model(4, [2, 3, 5])) == 10
+    assert num_observations(_model(4, [])) == 0
+    fewer_images = _model(23, [9] * 1000)
+    flattened = _model(24, [5] * 796)  # 3980 observations on more points
+    right = _model(24, [6] * 700)  # 4200 on fewer
+    ranked = sorted([fewer_images, flattened, right], key=model_rank)
+    assert ranked == [fewer_images, flattened, right]
