@@ -187,6 +187,19 @@ def test_the_sfm_camera_model_is_a_pose_option_that_reuses_the_renders():
     assert simple.cache_key(renders_only=True) == other.cache_key(renders_only=True)
 
 
+def test_a_new_registration_version_registers_cached_scenes_again_from_their_renders(monkeypatch):
+    """When the SfM code would register the same renders otherwise (``REGISTRATION_VERSION``), a
+    cached scene's key no longer matches but its renders' key does: it is registered again, not
+    rendered again."""
+    from seathru_nerfstudio.data.pathtrace import cli
+
+    config = PathtraceConfig(preset="fog")
+    key, render_key = config.cache_key(), config.cache_key(renders_only=True)
+    monkeypatch.setattr(cli, "REGISTRATION_VERSION", cli.REGISTRATION_VERSION + 1)
+    assert config.cache_key() != key
+    assert config.cache_key(renders_only=True) == render_key
+
+
 def test_the_presets_sample_count_is_the_default_and_noise_falls_as_its_root():
     """``--spp`` unset renders at the preset's count (the cache key says so: the same as spelling
     it out, other than another count), and the Monte Carlo noise, the difference between two

@@ -42,6 +42,10 @@ from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 GENERATOR_VERSION = 2
 """Bumped when the same options would render a different scene (part of the cache key)."""
+REGISTRATION_VERSION = 2
+"""Bumped when the same renders would register otherwise (part of the cache key, not of the
+renders' key: a cached scene keeps its renders and is registered again, in seconds). 2: the
+mapper's model chosen among two starts by the observations it explains (``data/sfm.py``)."""
 DEFAULT_ROOT = Path("outputs/pathtraced")
 EXTRA_FIELDS = {"dry": "gt_dry_file_path", "z_depth": "gt_z_depth_file_path", "ids": "gt_ids_file_path"}
 """Frame fields beside nerfstudio's and the benchmark's: the medium-free render (16-bit PNG),
@@ -95,6 +99,8 @@ class PathtraceConfig:
         options = {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
         options["spp"] = self.samples_per_pixel()  # the default and its value name the same renders
         options["generator_version"] = GENERATOR_VERSION
+        if not renders_only:
+            options["registration_version"] = REGISTRATION_VERSION
         return hashlib.sha256(json.dumps(options, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
