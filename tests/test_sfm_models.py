@@ -65,3 +65,25 @@ def test_models_rank_by_images_then_by_observations() -> None:
     right = _model(24, [6] * 700)  # 4200 on fewer
     ranked = sorted([fewer_images, flattened, right], key=model_rank)
     assert ranked == [fewer_images, flattened, right]
+
+
+def test_the_report_names_the_try_kept_and_how_far_the_others_turn(capsys) -> None:
+    """One line says which of the mapper's starts was kept and, for each other start, its images,
+    observations and camera disagreement (none under 3 shared images)."""
+    from seathru_nerfstudio.data.sfm import SfmResult, report
+
+    names = [f"frame_{i:05d}.png" for i in range(24)]
+    result = SfmResult(
+        reconstruction=None,
+        registered=names,
+        unregistered=[],
+        attempts=[24, 24, 2],
+        observations=[3981, 4200, 12],
+        kept=1,
+        disagreement_deg=[2.37, 0.0, None],
+    )
+    report(result)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "Kept the mapper's try 2 (24 images, 4200 observations)" in out
+    assert "try 1: 24 images, 3981 observations, cameras 2.4° apart (median)" in out
+    assert "try 3: 2 images, 12 observations" in out and "try 3: 2 images, 12 observations, cameras" not in out
