@@ -201,3 +201,21 @@ def test_report_puts_the_ceiling_beside_the_runs_and_compares_the_medium_with_it
     assert "10% (10, 10, 10)" in lines[first + 2] and "50% (50, 50, 50)" in lines[first + 2]
     gap = f"{30.0 - top['clean_psnr_objects']:+.2f}"
     assert f"| water | `seathru-nerf-lite` | {gap} |" in table and "Gaps to the ceiling" in table
+
+
+def test_the_scenes_registration_is_read_from_scene_json_and_said_in_one_line(exact_ceiling, tmp_path):
+    """A path-traced scene's ``scene.json`` says how its poses were made; the benchmark says it
+    beside the ceiling (a benchmark on wrong poses measures the SfM). A scene without that record
+    (``seathru-synth``'s), or with an unreadable one, has none and gets no line."""
+    from seathru_nerfstudio.bench.ceiling_scene import registration_line, scene_registration
+
+    assert exact_ceiling["registration"] is None and registration_line(None) is None
+    assert scene_registration(tmp_path) is None
+    (tmp_path / "scene.json").write_text("{not json")
+    assert scene_registration(tmp_path) is None
+    sfm = {"poses": "sfm", "registered": 24, "total": 24, "rotation_error_deg_median": 5.2276, "alignment_residual_rms_m": 1.1588}
+    (tmp_path / "scene.json").write_text(json.dumps({"registration": sfm}))
+    assert scene_registration(tmp_path) == sfm
+    line = registration_line(sfm)
+    assert "24/24 views registered" in line and "5.23° median rotation error" in line and "1.159 m rms" in line
+    assert registration_line({"poses": "truth", "registered": 24, "total": 24}) == "poses: truth (not structure from motion)"

@@ -108,6 +108,34 @@ def score_inversion(
     return {"metrics": scoring.mean_metrics(numeric), "per_view": per_view, "capped_gains": capped}
 
 
+def scene_registration(scene: Path) -> Optional[Dict[str, Any]]:
+    """How the scene's poses were made, as ``seathru-pathtrace`` records it in ``scene.json``
+    (``registration``: images registered, and for SfM poses the median rotation error in degrees
+    and the camera centres' rms residual in metres after a similarity to the truth); ``None``
+    for a scene without that record. A benchmark on poses that are wrong measures the SfM."""
+    try:
+        record = json.loads((scene / "scene.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return None
+    registration = record.get("registration") if isinstance(record, dict) else None
+    return registration if isinstance(registration, dict) else None
+
+
+def registration_line(registration: Optional[Dict[str, Any]]) -> Optional[str]:
+    """One line on the poses of a scene (:func:`scene_registration`), or ``None`` without a record."""
+    if not registration:
+        return None
+    if registration.get("poses") != "sfm":
+        return f"poses: {registration.get('poses', 'unknown')} (not structure from motion)"
+    line = f"poses: structure from motion, {registration.get('registered')}/{registration.get('total')} views registered"
+    if "rotation_error_deg_median" in registration:
+        line += (
+            f", {registration['rotation_error_deg_median']:.2f}° median rotation error and "
+            f"{registration['alignment_residual_rms_m']:.3f} m rms camera-centre residual after a similarity to the truth"
+        )
+    return line
+
+
 def scene_ceiling(scene: Path, name: Optional[str] = None) -> Dict[str, Any]:
     """The ceiling record of a scene (see the module docstring): the truth, both fits, their
     errors, and each variant's held-out J scores. Raises :class:`NoGroundTruth` for a scene
@@ -141,6 +169,7 @@ def scene_ceiling(scene: Path, name: Optional[str] = None) -> Dict[str, Any]:
         "fit": fit.as_dict(),
         "fit_all": fit_all.as_dict(),
         "fit_vs_truth": scoring.medium_error(fit.as_dict(), truth),
+        "registration": scene_registration(scene),
         "variants": variants,
         "note": "Ĵ = (I − B∞(1 − e^{−β_B z})) e^{β_D z} with the true range z; clipped to [0, 1] only for the PSNR; "
         "medium fits by least squares over the training views' object pixels (J and z true); β_B, B∞ of methods "

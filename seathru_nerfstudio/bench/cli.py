@@ -45,13 +45,16 @@ class CeilingConfig:
 def run_ceiling(config: CeilingConfig) -> None:
     import json
 
-    from seathru_nerfstudio.bench.ceiling_scene import scene_ceiling
+    from seathru_nerfstudio.bench.ceiling_scene import registration_line, scene_ceiling
     from seathru_nerfstudio.bench.report import ceiling_table
 
     if not (config.scene / "transforms.json").is_file():
         raise ValueError(f"{config.scene}: no transforms.json (not a nerfstudio scene folder)")
     record = scene_ceiling(config.scene)
     print(ceiling_table(record), end="")
+    poses = registration_line(record["registration"])
+    if poses is not None:
+        print(poses)
     if config.output is not None:
         write_text_atomic(config.output, json.dumps(record, indent=1, default=float))
         CONSOLE.print(f"seathru-bench: wrote {config.output}")

@@ -145,7 +145,7 @@ def _launch(spec: Dict[str, Any], spec_path: Path, log_path: Path) -> subprocess
 def scene_ceilings(scenes: List[Tuple[str, Path]]) -> Dict[str, Any]:
     """The ceiling of each scene with ground truth (:func:`ceiling_scene.scene_ceiling`, seconds
     each), before any training, so that unreadable ground truth stops the benchmark early."""
-    from seathru_nerfstudio.bench.ceiling_scene import NoGroundTruth, scene_ceiling
+    from seathru_nerfstudio.bench.ceiling_scene import NoGroundTruth, registration_line, scene_ceiling
 
     ceilings: Dict[str, Any] = {}
     for name, folder in scenes:
@@ -160,6 +160,9 @@ def scene_ceilings(scenes: List[Tuple[str, Path]]) -> Dict[str, Any]:
             f"ceiling of {name}: J PSNR {top['clean_psnr_objects']:.2f} dB over object pixels, "
             f"{top['clean_psnr_near_third']:.2f} dB on the nearest third"
         )
+        poses = registration_line(ceilings[name]["registration"])
+        if poses is not None:
+            CONSOLE.print(f"{name}: {poses}")
     return ceilings
 
 
