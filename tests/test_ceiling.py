@@ -219,3 +219,5 @@ def test_the_scenes_registration_is_read_from_scene_json_and_said_in_one_line(ex
     line = registration_line(sfm)
     assert "24/24 views registered" in line and "5.23° median rotation error" in line and "1.159 m rms" in line
     assert registration_line({"poses": "truth", "registered": 24, "total": 24}) == "poses: truth (not structure from motion)"
+    failed = registration_line({"poses": "sfm", "failed": "structure from motion registered 2 of 24 images"})
+    assert failed == "poses: structure from motion failed (structure from motion registered 2 of 24 images)"

@@ -127,6 +127,8 @@ def registration_line(registration: Optional[Dict[str, Any]]) -> Optional[str]:
         return None
     if registration.get("poses") != "sfm":
         return f"poses: {registration.get('poses', 'unknown')} (not structure from motion)"
+    if "failed" in registration:
+        return f"poses: structure from motion failed ({registration['failed']})"
     line = f"poses: structure from motion, {registration.get('registered')}/{registration.get('total')} views registered"
     if "rotation_error_deg_median" in registration:
         line += (
