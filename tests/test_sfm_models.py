@@ -9,11 +9,28 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from seathru_nerfstudio.data.sfm_models import model_rank, num_observations, rotation_disagreement_deg
+from seathru_nerfstudio.data.sfm_models import model_rank, num_observations, rotation_angle_deg, rotation_disagreement_deg
 
 
 def _cameras(n: int, seed: int) -> np.ndarray:
     return Rotation.random(n, random_state=seed).as_matrix()
+
+
+@pytest.mark.parametrize("theta_deg", [0.0, 1e-6, 0.5, 90.0, 179.0])
+def test_a_rotations_angle_is_its_axis_angle_to_the_last_digits(theta_deg: float) -> None:
+    """About any axis, the angle comes back to a relative 1e-9, also at 1e-6 degrees, where an
+    arccos of the trace would return 0 or lose most digits; the pose error of the path-traced
+    scenes' alignment (``pathtrace.align.rotation_error_deg``) is the same angle."""
+    from seathru_nerfstudio.data.pathtrace.align import rotation_error_deg
+
+    axis = np.array([0.3, -0.5, 0.81]) / np.linalg.norm([0.3, -0.5, 0.81])
+    turn = Rotation.from_rotvec(np.radians(theta_deg) * axis).as_matrix()
+    assert float(rotation_angle_deg(turn)) == pytest.approx(theta_deg, rel=1e-9, abs=1e-12)
+    pose = np.eye(4)
+    pose[:3, :3] = _cameras(1, 5)[0]
+    turned = pose.copy()
+    turned[:3, :3] = pose[:3, :3] @ turn
+    assert rotation_error_deg(pose, turned) == pytest.approx(theta_deg, rel=1e-9, abs=1e-9)
 
 
 def test_a_change_of_gauge_is_no_disagreement() -> None:

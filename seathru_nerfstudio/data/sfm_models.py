@@ -29,6 +29,13 @@ def model_rank(reconstruction: pycolmap.Reconstruction) -> tuple[int, int]:
     return reconstruction.num_reg_images(), num_observations(reconstruction)
 
 
+def rotation_angle_deg(rotation: npt.NDArray[np.float64]) -> npt.NDArray[np.float64]:
+    """Angle of rotation matrices (..., 3, 3), degrees: ``θ = 2 arcsin(‖R − I‖_F / (2√2))``, exact
+    for a rotation and accurate near 0, where ``arccos((tr R − 1) / 2)`` loses half the digits."""
+    chord = np.linalg.norm(rotation - np.eye(3), axis=(-2, -1)) / (2.0 * np.sqrt(2.0))
+    return np.degrees(2.0 * np.arcsin(np.clip(chord, 0.0, 1.0)))
+
+
 def rotation_disagreement_deg(rotations_a: npt.NDArray[np.float64], rotations_b: npt.NDArray[np.float64]) -> float:
     """How far two reconstructions of the same images orient their cameras apart, degrees.
 
@@ -36,14 +43,12 @@ def rotation_disagreement_deg(rotations_a: npt.NDArray[np.float64], rotations_b:
     A reconstruction is known up to a similarity of the world (the gauge), which turns every
     camera of one by the same ``G``: ``R_b,i = R_a,i G``. ``G`` is taken as the rotation nearest
     ``Σ_i R_a,iᵀ R_b,i`` (SVD), and the result is the median over i of the angle of
-    ``R_a,iᵀ R_b,i Gᵀ``, ``θ = 2 arcsin(‖M − I‖_F / (2√2))`` (exact, and accurate near 0).
+    ``R_a,iᵀ R_b,i Gᵀ`` (:func:`rotation_angle_deg`).
     """
     relative = np.einsum("nji,njk->nik", rotations_a, rotations_b)  # R_a,i^T R_b,i
     u, _, vt = np.linalg.svd(relative.sum(axis=0))
     gauge = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    residual = relative @ gauge.T - np.eye(3)
-    chord = np.linalg.norm(residual, axis=(1, 2)) / (2.0 * np.sqrt(2.0))
-    return float(np.degrees(np.median(2.0 * np.arcsin(np.clip(chord, 0.0, 1.0)))))
+    return float(np.median(rotation_angle_deg(relative @ gauge.T)))
 
 
 def models_disagreement_deg(a: pycolmap.Reconstruction, b: pycolmap.Reconstruction) -> float | None:

@@ -63,5 +63,6 @@ def umeyama(source: npt.NDArray[np.float64], target: npt.NDArray[np.float64]) ->
 
 def rotation_error_deg(a: npt.NDArray[np.float64], b: npt.NDArray[np.float64]) -> float:
     """Angle (degrees) of the rotation between the (3, 3) rotation parts of two poses."""
-    cos = (np.trace(a[:3, :3].T @ b[:3, :3]) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+    from seathru_nerfstudio.data.sfm_models import rotation_angle_deg
+
+    return float(rotation_angle_deg(a[:3, :3].T @ b[:3, :3]))
