@@ -14,7 +14,7 @@ import torch
 from seathru_nerfstudio.data.linear_images import LinearImageDataset
 from seathru_nerfstudio.data.nerfstudio_data import EXTENT_KEY
 from seathru_nerfstudio.data.seathru_dataparser import SeathruDataError, SeathruDataParserConfig
-from seathru_nerfstudio.data.sfm import llff_poses_bounds
+from seathru_nerfstudio.data.sfm_outputs import llff_poses_bounds
 
 
 WIDTH, HEIGHT = 1700, 6  # wider than nerfstudio's 1600 px auto-downscale threshold

@@ -192,7 +192,8 @@ def test_sparse_depths_do_not_wrap_whatever_the_mappers_scale(sfm_run, tmp_path,
     points in one consistent gauge: each equals the unscaled run's depth times one factor."""
     import pycolmap
 
-    from seathru_nerfstudio.data.sfm import SPARSE_DEPTH_MAX, SfmResult, observed_depths, write_outputs
+    from seathru_nerfstudio.data.sfm import SfmResult
+    from seathru_nerfstudio.data.sfm_outputs import SPARSE_DEPTH_MAX, observed_depths, write_outputs
 
     _, dataset, _, _ = sfm_run
     reconstruction = pycolmap.Reconstruction(str(dataset / "sparse" / "0"))
@@ -249,6 +250,7 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
         poses = {reconstruction.images[i].name: reconstruction.images[i].cam_from_world().matrix() for i in reconstruction.reg_image_ids()}
         runs.append((result.registered, poses, reconstruction.num_points3D()))
         assert len(result.attempts) >= MIN_ATTEMPTS  # a complete model is checked against another start
+        assert set(result.descriptors) == {"SIFT"}  # registered fully: no second descriptor pass
         ranks = list(zip(result.attempts, result.observations))
         assert ranks[result.kept] == max(ranks) == (len(result.registered), num_observations(reconstruction))
         assert result.disagreement_deg[result.kept] == pytest.approx(0.0, abs=1e-6)
@@ -261,11 +263,12 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
 
 
 def test_a_small_registration_is_retried_then_refused_below_the_users_minimum(small_scene, tmp_path) -> None:
-    """Two unrelated scenes in one folder: the best model holds at most one of them, the mapper
-    tries its other settings, and a minimum above that share fails naming the folder."""
+    """Two unrelated scenes in one folder: the best model holds at most one of them, so the mapper
+    tries its other settings with each kind of descriptor in turn, and a minimum above that share
+    fails naming the folder."""
     import shutil
 
-    from seathru_nerfstudio.data.sfm import MAPPER_ATTEMPTS, RETRY_BELOW_FRACTION, SfmError, run_sfm
+    from seathru_nerfstudio.data.sfm import DESCRIPTOR_PASSES, MAPPER_ATTEMPTS, RETRY_BELOW_FRACTION, SfmError, run_sfm
 
     other = generate(SynthConfig(output_dir=tmp_path / "other", preset="fog", seed=11, **SMALL))
     mixed = display_copies(other, tmp_path / "mixed", prefix="other_")
@@ -274,7 +277,9 @@ def test_a_small_registration_is_retried_then_refused_below_the_users_minimum(sm
     total = len(list(mixed.iterdir()))
     result = run_sfm(mixed, tmp_path / "work", camera_model="PINHOLE", min_registered_fraction=0.0, source="capture/")
     assert len(result.registered) <= total - SMALL["num_views"] < RETRY_BELOW_FRACTION * total
-    assert len(result.attempts) == len(MAPPER_ATTEMPTS)  # every setting tried
+    labels = [label for label, _ in DESCRIPTOR_PASSES]
+    assert result.descriptors == [label for label in labels for _ in MAPPER_ATTEMPTS]  # every setting, every descriptor
+    assert len(result.attempts) == len(result.descriptors) == len(result.observations)
     assert len(result.registered) == max(result.attempts)  # and the best model kept
     with pytest.raises(SfmError, match=r"registered only \d+ of the 20 images of capture/ .*--min-registered-fraction 0.6"):
         run_sfm(mixed, tmp_path / "work_2", camera_model="PINHOLE", min_registered_fraction=0.6, source="capture/")

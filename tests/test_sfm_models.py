@@ -104,3 +104,11 @@ def test_the_report_names_the_try_kept_and_how_far_the_others_turn(capsys) -> No
     assert "Kept the mapper's try 2 (24 images, 4200 observations)" in out
     assert "try 1: 24 images, 3981 observations, cameras 2.4° apart (median)" in out
     assert "try 3: 2 images, 12 observations" in out and "try 3: 2 images, 12 observations, cameras" not in out
+    assert "SIFT" not in out  # one kind of descriptor: not named
+
+    result.attempts, result.observations, result.disagreement_deg = [6, 3, 6, 18, 24], [138, 77, 138, 1136, 1310], [None] * 5
+    result.descriptors, result.kept = ["SIFT"] * 3 + ["pooled SIFT"] * 2, 4
+    report(result)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "Kept the mapper's try 5, pooled SIFT (24 images, 1310 observations)" in out
+    assert "try 1, SIFT: 6 images, 138 observations" in out and "try 4, pooled SIFT: 18 images" in out

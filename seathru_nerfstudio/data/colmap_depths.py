@@ -10,7 +10,7 @@ data is never written to), so that every data path gives the method the same SfM
 
 The model's scale is arbitrary, and a 16-bit map holds z-depth × factor up to 65535: the factor puts
 the 99th percentile of the observed z-depths at half that range, as ``seathru-process-data``'s
-gauge does (:func:`seathru_nerfstudio.data.sfm.normalise_gauge`).
+gauge does (:func:`seathru_nerfstudio.data.sfm_outputs.normalise_gauge`).
 """
 
 from __future__ import annotations
@@ -60,7 +60,7 @@ def depth_factor(model: Path) -> float:
     observed z-depths at half of 65535."""
     import pycolmap
 
-    from seathru_nerfstudio.data.sfm import GAUGE_DEPTH_QUANTILE, observed_depths
+    from seathru_nerfstudio.data.sfm_outputs import GAUGE_DEPTH_QUANTILE, observed_depths
 
     depths = observed_depths(pycolmap.Reconstruction(str(model)))
     depths = depths[np.isfinite(depths) & (depths > 0)]

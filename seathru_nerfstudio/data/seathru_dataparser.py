@@ -173,7 +173,7 @@ class SeathruDataParser(ColmapDataParser):
                 )
             self._check_row_order(path, poses_bounds)
             return poses_bounds[:, 15:17].astype(np.float64)
-        from seathru_nerfstudio.data.sfm import llff_poses_bounds, pycolmap  # sfm.py orders cv2 before pycolmap
+        from seathru_nerfstudio.data.sfm_outputs import llff_poses_bounds, pycolmap  # cv2 before pycolmap (sfm.py)
 
         CONSOLE.print(f"[yellow]No {path.name}: near/far from the sparse points of {recon_dir} (LLFF percentiles)")
         names, rows = llff_poses_bounds(pycolmap.Reconstruction(str(recon_dir)))

@@ -1,4 +1,5 @@
-"""Camera poses with pycolmap (no COLMAP binary), and the files nerfstudio / LLFF expect.
+"""Camera poses with pycolmap (no COLMAP binary); :mod:`~seathru_nerfstudio.data.sfm_outputs` writes
+the files nerfstudio / LLFF expect.
 
 Conventions
 -----------
@@ -7,7 +8,7 @@ Conventions
   find few features in them. The copies carry the same file names as the linear images,
   so COLMAP's image names are the dataset's image names.
 * COLMAP world units are arbitrary up to the written files: the mapper's scale is rescaled
-  (:func:`normalise_gauge`) so the 99th percentile of the points' z-depths is 32.77 units,
+  (:func:`~seathru_nerfstudio.data.sfm_outputs.normalise_gauge`) so the 99th percentile of the points' z-depths is 32.77 units,
   which the uint16 depth PNGs hold without wrapping. Camera frames are OpenCV (x right, y down, z forward), ``cam_from_world`` maps world to camera.
 * ``transforms.json`` is written by nerfstudio's own ``colmap_to_json`` (OpenGL camera
   axes, z-up world, like ``ns-process-data``). ``poses_bounds.npy`` follows LLFF's
@@ -106,6 +107,8 @@ class SfmResult:
     """Images registered by the best model of each mapper attempt, in order (:data:`MAPPER_ATTEMPTS`)."""
     observations: list[int] = field(default_factory=list)
     """Feature observations (:func:`~seathru_nerfstudio.data.sfm_models.num_observations`) of that model, per attempt."""
+    descriptors: list[str] = field(default_factory=list)
+    """The descriptors (:data:`DESCRIPTOR_PASSES`) each attempt mapped with."""
     kept: int = 0
     """Index of the attempt whose model is ``reconstruction``."""
     disagreement_deg: list[float | None] = field(default_factory=list)
@@ -147,6 +150,20 @@ MAPPER_ATTEMPTS: tuple[dict[str, float], ...] = (
 )
 """Incremental mapper settings, tried in order while the best model is small (the features and
 matches are kept): each is deterministic, so the whole sequence is."""
+DESCRIPTOR_PASSES: tuple[tuple[str, dict[str, bool]], ...] = (
+    ("SIFT", {}),
+    ("pooled SIFT", {"domain_size_pooling": True}),
+)
+"""Descriptors to extract and match, in order, each followed by the mapper's tries; the next pass runs
+only while the best model holds less than :data:`RETRY_BELOW_FRACTION` of the images. Pooled SIFT
+(DSP-SIFT: the descriptor averaged over a range of patch sizes) is more distinctive where noise
+and a veil leave little texture, and Lowe's ratio test then keeps more true matches. On the
+path-traced scenes (one focal length, display copies as shipped; ``seathru-pathtrace --preset P
+--seed L``): turbid water layout 2 goes from 6/24 views (29 verified pairs) to 24/24 (72 pairs, 1.65
+degrees median rotation error), coastal layout 5 from 17/24 (0.95 degrees) to 24/24 (1.15 degrees).
+It is not the first pass: on coastal water its five times more points moved the medium fit (beta_D 9
+to 19% off, one run; docs/history.md, 2026-11-28), and a relaxed ratio test (0.9 instead of 0.8), the
+other way to keep more matches, registered coastal layouts 5 and 6 fully but 19 and 7 degrees off."""
 SEED = 0
 
 
@@ -222,53 +239,40 @@ def run_sfm(
     if not 0.0 <= min_registered_fraction <= 1.0:
         raise SfmError(f"--min-registered-fraction must be in [0, 1], got {min_registered_fraction}")
     work_dir.mkdir(parents=True, exist_ok=True)
-    database = work_dir / "database.db"
     if matching == "auto":
         matching = "exhaustive" if len(names) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
 
-    reader = pycolmap.ImageReaderOptions()
-    reader.camera_model = camera_model
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.max_image_size = 3200
-    extraction.num_threads = 1  # image numbers in name order (see the docstring)
-    matching_options = pycolmap.FeatureMatchingOptions()
-    matching_options.num_threads = 1  # other matches now and then on several threads (see the docstring)
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = SEED  # default -1: a new seed every run, other inliers every run
-    pycolmap.set_random_seed(SEED)
-
+    best, candidates, descriptors = None, [], []
     with _colmap_logging(verbose):
-        with status(f"[bold yellow]Extracting SIFT features from {len(names)} images...", verbose=verbose):
-            pycolmap.extract_features(
-                database,
-                image_dir,
-                image_names=names,
-                camera_mode=pycolmap.CameraMode.SINGLE,
-                reader_options=reader,
-                extraction_options=extraction,
-                device=pycolmap.Device.cpu,
-            )
-        with status(f"[bold yellow]Matching features ({matching})...", verbose=verbose):
-            match = pycolmap.match_exhaustive if matching == "exhaustive" else pycolmap.match_sequential
-            match(database, matching_options=matching_options, verification_options=verification, device=pycolmap.Device.cpu)
-        best, candidates = None, []
-        for number, attempt in enumerate(MAPPER_ATTEMPTS):
-            enough = best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names)
-            if number >= MIN_ATTEMPTS and enough:
+        for number, (label, sift) in enumerate(DESCRIPTOR_PASSES):
+            if best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names):
                 break
-            if number >= MIN_ATTEMPTS:
+            if number > 0:
                 CONSOLE.print(
-                    f"[yellow]The mapper registered {candidates[-1].num_reg_images() if candidates[-1] else 0}/{len(names)} "
-                    f"images; trying again with other initial pairs ({number + 1}/{len(MAPPER_ATTEMPTS)})"
+                    f"[yellow]The best model holds {best.num_reg_images() if best else 0}/{len(names)} images; "
+                    f"matching again with {label} descriptors"
                 )
-            models = _map(database, image_dir, work_dir / f"models_{number}", attempt, len(names), number)
-            candidates.append(max(models.values(), key=model_rank, default=None))
-            if candidates[-1] is not None and (best is None or model_rank(candidates[-1]) > model_rank(best)):
-                best = candidates[-1]
+            database = work_dir / ("database.db" if number == 0 else f"database_{number}.db")
+            _extract_and_match(database, image_dir, names, camera_model, matching, sift, label, verbose)
+            for k, attempt in enumerate(MAPPER_ATTEMPTS):
+                enough = best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names)
+                if k >= MIN_ATTEMPTS and enough:
+                    break
+                if k >= MIN_ATTEMPTS:
+                    CONSOLE.print(
+                        f"[yellow]The mapper registered {candidates[-1].num_reg_images() if candidates[-1] else 0}/"
+                        f"{len(names)} images; trying again with other initial pairs ({k + 1}/{len(MAPPER_ATTEMPTS)})"
+                    )
+                tries = len(candidates)
+                models = _map(database, image_dir, work_dir / f"models_{tries}", attempt, len(names), tries)
+                candidates.append(max(models.values(), key=model_rank, default=None))
+                descriptors.append(label)
+                if candidates[-1] is not None and (best is None or model_rank(candidates[-1]) > model_rank(best)):
+                    best = candidates[-1]
     if best is None:
         raise SfmError(
             f"structure from motion registered none of the {len(names)} images of {source} "
-            f"({len(MAPPER_ATTEMPTS)} tries): no two views overlap with parallax. The camera must move between "
+            f"({len(candidates)} tries): no two views overlap with parallax. The camera must move between "
             "views (not only turn) and the views must share textured content; check for blur or texture-less water"
         )
     registered = sorted(best.images[i].name for i in best.reg_image_ids())
@@ -279,6 +283,7 @@ def run_sfm(
         registered=registered,
         unregistered=unregistered,
         attempts=attempts,
+        descriptors=descriptors,
         observations=[num_observations(m) if m is not None else 0 for m in candidates],
         kept=next(i for i, m in enumerate(candidates) if m is best),
         disagreement_deg=[None if m is None else models_disagreement_deg(best, m) for m in candidates],
@@ -291,6 +296,38 @@ def run_sfm(
             "or lower --min-registered-fraction to train on the registered part"
         )
     return result
+
+
+def _extract_and_match(
+    database: Path, image_dir: Path, names: list[str], camera_model: str, matching: str, sift: dict[str, bool], label: str, verbose: bool
+) -> None:
+    """SIFT extraction (COLMAP's options, then ``sift``'s) and matching into ``database``, on one thread
+    each, with fixed seeds (see :func:`run_sfm`)."""
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.max_image_size = 3200
+    extraction.num_threads = 1  # image numbers in name order (see run_sfm)
+    for name, value in sift.items():
+        setattr(extraction.sift, name, value)
+    matching_options = pycolmap.FeatureMatchingOptions()
+    matching_options.num_threads = 1  # other matches now and then on several threads (see run_sfm)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = SEED  # default -1: a new seed every run, other inliers every run
+    pycolmap.set_random_seed(SEED)
+    with status(f"[bold yellow]Extracting {label} features from {len(names)} images...", verbose=verbose):
+        pycolmap.extract_features(
+            database,
+            image_dir,
+            image_names=names,
+            camera_mode=pycolmap.CameraMode.SINGLE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+    with status(f"[bold yellow]Matching features ({matching})...", verbose=verbose):
+        match = pycolmap.match_exhaustive if matching == "exhaustive" else pycolmap.match_sequential
+        match(database, matching_options=matching_options, verification_options=verification, device=pycolmap.Device.cpu)
 
 
 def _map(database: Path, image_dir: Path, output: Path, attempt: dict[str, float], total: int, number: int) -> dict:
@@ -310,106 +347,6 @@ def _shorten(names: list[str], limit: int = 8) -> str:
     return ", ".join(names[:limit]) + (f" and {len(names) - limit} more" if len(names) > limit else "")
 
 
-def llff_poses_bounds(reconstruction: pycolmap.Reconstruction) -> tuple[list[str], npt.NDArray[np.float64]]:
-    """LLFF ``poses_bounds.npy`` rows (N×17) for the registered images, sorted by name.
-
-    Same layout as LLFF's ``imgs2poses``; near/far are the 0.1% / 99.9% percentiles of the
-    depths (along the optical axis, COLMAP units) of the 3D points each image observes.
-    """
-    images = sorted((reconstruction.images[i] for i in reconstruction.reg_image_ids()), key=lambda im: im.name)
-    points = {pid: p for pid, p in reconstruction.points3D.items()}
-    all_xyz = np.array([p.xyz for p in points.values()]).reshape(-1, 3)
-    rows = []
-    for image in images:
-        c2w = image.cam_from_world().inverse().matrix()  # 3x4, OpenCV axes
-        camera = reconstruction.cameras[image.camera_id]
-        hwf = np.array([camera.height, camera.width, camera.params[0]], dtype=np.float64)
-        llff = np.stack([c2w[:, 1], c2w[:, 0], -c2w[:, 2], c2w[:, 3], hwf], axis=1)
-        seen = [p2d.point3D_id for p2d in image.points2D if p2d.has_point3D()]
-        xyz = np.array([points[pid].xyz for pid in seen]).reshape(-1, 3) if seen else all_xyz
-        depths = (xyz - c2w[:, 3]) @ c2w[:, 2]
-        depths = depths[depths > 0]
-        near, far = (np.percentile(depths, [0.1, 99.9]) if depths.size else (np.nan, np.nan))
-        rows.append(np.concatenate([llff.ravel(), [near, far]]))
-    return [im.name for im in images], np.array(rows, dtype=np.float64).reshape(-1, 17)
-
-
-SPARSE_DEPTH_SCALE = 1000.0
-"""``depth/*.png`` hold z-depth × this as uint16 (nerfstudio's default ``depth_unit_scale_factor``
-is its inverse)."""
-SPARSE_DEPTH_MAX = 65535 / SPARSE_DEPTH_SCALE
-"""The largest z-depth (COLMAP units) a uint16 depth PNG can hold; nerfstudio's
-``create_sfm_depth`` casts with ``astype(np.uint16)``, which wraps anything beyond it."""
-GAUGE_DEPTH_QUANTILE = 0.99
-GAUGE_DEPTH_TARGET = 0.5 * SPARSE_DEPTH_MAX
-"""The gauge puts the 99th percentile of the observed points' z-depths here (COLMAP units):
-2× headroom below :data:`SPARSE_DEPTH_MAX` for the farthest points, and 1/32767 resolution
-at that depth."""
-
-
-def observed_depths(reconstruction: pycolmap.Reconstruction) -> npt.NDArray[np.float64]:
-    """Z-depth (COLMAP units, along each camera's optical axis) of every observation of a 3D point."""
-    depths = []
-    for image_id in reconstruction.reg_image_ids():
-        image = reconstruction.images[image_id]
-        world_to_camera = image.cam_from_world().matrix()
-        xyz = np.array([reconstruction.points3D[p.point3D_id].xyz for p in image.points2D if p.has_point3D()])
-        if xyz.size:
-            depths.append(xyz.reshape(-1, 3) @ world_to_camera[2, :3] + world_to_camera[2, 3])
-    return np.concatenate(depths) if depths else np.zeros(0)
-
-
-def normalise_gauge(reconstruction: pycolmap.Reconstruction) -> float:
-    """Rescale the reconstruction in place so its sparse depths fit a uint16 depth PNG.
-
-    The mapper's scale is arbitrary (set by its first image pair), and its points can sit
-    past :data:`SPARSE_DEPTH_MAX`, where the depth PNGs would wrap around silently. A
-    similarity changes nothing downstream: nerfstudio rescales the poses, and the depths
-    move with them. Returns the factor applied (new units per old unit).
-    """
-    depths = observed_depths(reconstruction)
-    depths = depths[depths > 0]
-    if depths.size == 0:
-        return 1.0
-    factor = GAUGE_DEPTH_TARGET / float(np.quantile(depths, GAUGE_DEPTH_QUANTILE))
-    reconstruction.transform(pycolmap.Sim3d(factor, pycolmap.Rotation3d(), np.zeros(3)))
-    return factor
-
-
-def write_outputs(result: SfmResult, output_dir: Path) -> None:
-    """Write ``sparse/0`` (COLMAP binaries), ``depth/`` (the SfM points as sparse depth maps, via
-    nerfstudio's ``create_sfm_depth``: 16-bit, COLMAP units x 1000, 0 = no point; the gauge is
-    first rescaled by :func:`normalise_gauge` so they fit),
-    ``transforms.json`` + ``sparse_pc.ply`` (via nerfstudio's ``colmap_to_json``, with each
-    frame's ``depth_file_path``) and ``poses_bounds.npy`` into ``output_dir``.
-
-    The sparse depths anchor the object field where SfM saw structure (``--pipeline.model.
-    depth-loss-mult``): in water the image alone cannot tell a near dark surface from a far
-    bright one.
-    """
-    # both pull in torch: only when needed
-    from nerfstudio.process_data.colmap_utils import colmap_to_json, create_sfm_depth
-
-    normalise_gauge(result.reconstruction)
-    sparse = output_dir / "sparse" / "0"
-    sparse.mkdir(parents=True, exist_ok=True)
-    result.reconstruction.write(sparse)
-    depth_dir = output_dir / "depth"
-    depth_dir.mkdir(exist_ok=True)
-    depth_paths = create_sfm_depth(
-        recon_dir=sparse,
-        output_dir=depth_dir,
-        verbose=False,
-        depth_scale_to_integer_factor=SPARSE_DEPTH_SCALE,
-        max_depth=SPARSE_DEPTH_MAX,  # drop, rather than wrap, the few points beyond the PNG's range
-    )
-    num_frames = colmap_to_json(recon_dir=sparse, output_dir=output_dir, image_id_to_depth_path=depth_paths)
-    if num_frames != len(result.registered):
-        raise SfmError(f"transforms.json has {num_frames} frames, expected {len(result.registered)}")
-    _, rows = llff_poses_bounds(result.reconstruction)
-    np.save(output_dir / "poses_bounds.npy", rows)
-
-
 def report(result: SfmResult) -> None:
     """Print how many images registered and name every one that did not."""
     total = len(result.registered) + len(result.unregistered)
@@ -417,15 +354,17 @@ def report(result: SfmResult) -> None:
     CONSOLE.print(
         f"[bold {colour}]Registered {len(result.registered)}/{total} images ({100 * result.registration_rate:.0f}%)"
     )
+    passes = len(set(result.descriptors)) > 1  # name the descriptors only where they differ
+    label = [f", {d}" if passes else "" for d in result.descriptors] or [""] * len(result.attempts)
     others = [
-        f"try {i + 1}: {n} images, {o} observations" + ("" if d is None else f", cameras {d:.1f}° apart (median)")
+        f"try {i + 1}{label[i]}: {n} images, {o} observations" + ("" if d is None else f", cameras {d:.1f}° apart (median)")
         for i, (n, o, d) in enumerate(zip(result.attempts, result.observations, result.disagreement_deg))
         if i != result.kept
     ]
     if others:
         CONSOLE.print(
-            f"Kept the mapper's try {result.kept + 1} ({len(result.registered)} images, {result.observations[result.kept]} "
-            f"observations); {'; '.join(others)}"
+            f"Kept the mapper's try {result.kept + 1}{label[result.kept]} ({len(result.registered)} images, "
+            f"{result.observations[result.kept]} observations); {'; '.join(others)}"
         )
     if result.unregistered:
         CONSOLE.print(
