@@ -215,7 +215,7 @@ def run_sfm(
 
     One camera (``camera_model``, COLMAP name) is shared by all images; its focal length
     starts at 1.2 × the long side (no EXIF in the display copies) and is refined by bundle
-    adjustment. ``work_dir`` receives ``database.db`` and the mapper's models.
+    adjustment. ``work_dir`` receives ``database.db`` (``database_1.db`` for the second descriptors) and the mapper's models.
 
     The same images give the same result: features are extracted on one thread (COLMAP numbers
     the images in the order its threads finish them, and the mapper breaks ties by number), and
@@ -224,9 +224,11 @@ def run_sfm(
     one thread with fixed seeds
     (:func:`mapper_options`). While the best model holds less than :data:`RETRY_BELOW_FRACTION`
     of the images, and at least :data:`MIN_ATTEMPTS` times, the mapper runs again with the next of
-    :data:`MAPPER_ATTEMPTS` (other initial pairs); the model with the most images wins, and among
-    those the one that explains the most observations
-    (:func:`~seathru_nerfstudio.data.sfm_models.model_rank`; the first, on a tie).
+    :data:`MAPPER_ATTEMPTS` (other initial pairs). While it still holds less than that share, the
+    images are matched again with the next of :data:`DESCRIPTOR_PASSES` (pooled SIFT) and mapped as
+    before. Over all tries the model with the most images wins, and among those the one that
+    explains the most observations (:func:`~seathru_nerfstudio.data.sfm_models.model_rank`; the
+    first, on a tie).
 
     Returns that model; images outside it are ``unregistered``. Raises :class:`SfmError` when no
     model could be built, or when it holds less than ``min_registered_fraction`` of the images.
