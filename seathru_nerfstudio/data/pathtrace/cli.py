@@ -5,7 +5,7 @@ Steps: draw the layout from the seed; render every view (in-medium image, J, med
 range, z-depth, object ids); fit the best SeaThru medium to the training views
 (:mod:`~seathru_nerfstudio.data.pathtrace.truth`); run ``seathru-process-data`` on the
 in-medium images once (it is repeatable to the bit, and retries its mapper with other initial
-pairs itself: :func:`~seathru_nerfstudio.data.sfm.run_sfm`); align
+pairs and other descriptors itself: :func:`~seathru_nerfstudio.data.sfm.run_sfm`); align
 the recovered poses to the true ones (:mod:`~seathru_nerfstudio.data.pathtrace.align`);
 write ``transforms.json`` with the SfM poses, the SfM sparse depths in metres and the
 ground-truth fields, ``ground_truth/medium.json`` and ``scene.json``.
