@@ -8,7 +8,8 @@ Conventions
   find few features in them. The copies carry the same file names as the linear images,
   so COLMAP's image names are the dataset's image names.
 * COLMAP world units are arbitrary up to the written files: the mapper's scale is rescaled
-  (:func:`~seathru_nerfstudio.data.sfm_outputs.normalise_gauge`) so the 99th percentile of the points' z-depths is 32.77 units,
+  (:func:`~seathru_nerfstudio.data.sfm_outputs.normalise_gauge`) so the 99th percentile of the
+  points' z-depths is 32.77 units,
   which the uint16 depth PNGs hold without wrapping. Camera frames are OpenCV (x right, y down, z forward), ``cam_from_world`` maps world to camera.
 * ``transforms.json`` is written by nerfstudio's own ``colmap_to_json`` (OpenGL camera
   axes, z-up world, like ``ns-process-data``). ``poses_bounds.npy`` follows LLFF's
@@ -104,7 +105,8 @@ class SfmResult:
     registered: list[str]
     unregistered: list[str]
     attempts: list[int] = field(default_factory=list)
-    """Images registered by the best model of each mapper attempt, in order (:data:`MAPPER_ATTEMPTS`)."""
+    """Images registered by the best model of each mapper attempt, in order (:data:`MAPPER_ATTEMPTS` for each
+    of the :data:`DESCRIPTOR_PASSES` that ran)."""
     observations: list[int] = field(default_factory=list)
     """Feature observations (:func:`~seathru_nerfstudio.data.sfm_models.num_observations`) of that model, per attempt."""
     descriptors: list[str] = field(default_factory=list)
@@ -163,8 +165,9 @@ path-traced scenes (one focal length, display copies as shipped; ``seathru-patht
 degrees median rotation error), coastal layout 5 from 17/24 (0.95 degrees) to 23/24 (1.10 degrees).
 It is not the first pass: alone, it registered coastal layout 0 24/24 but 38 degrees off at the
 mapper's second start (SIFT: 23/24, 1.49 degrees); with guided matching its five times more points
-moved coastal's medium fit (beta_D 9 to 19% off, one run; docs/history.md, 2026-11-28); and a relaxed ratio test (0.9 instead of 0.8), the
-other way to keep more matches, registered coastal layouts 5 and 6 fully but 19 and 7 degrees off."""
+moved coastal's medium fit (beta_D 9 to 19% off, one run; docs/history.md, 2026-11-28). A relaxed
+ratio test (0.9 instead of 0.8), the other way to keep more matches, registered coastal layouts 5
+and 6 fully but 19 and 7 degrees off."""
 SEED = 0
 
 
@@ -216,7 +219,8 @@ def run_sfm(
 
     One camera (``camera_model``, COLMAP name) is shared by all images; its focal length
     starts at 1.2 × the long side (no EXIF in the display copies) and is refined by bundle
-    adjustment. ``work_dir`` receives ``database.db`` (``database_1.db`` for the second descriptors) and the mapper's models.
+    adjustment. ``work_dir`` receives ``database.db`` (``database_1.db`` for the second descriptors)
+    and the mapper's models.
 
     The same images give the same result: features are extracted on one thread (COLMAP numbers
     the images in the order its threads finish them, and the mapper breaks ties by number), and
@@ -246,9 +250,13 @@ def run_sfm(
         matching = "exhaustive" if len(names) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
 
     best, candidates, descriptors = None, [], []
+
+    def holds_enough() -> bool:
+        return best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names)
+
     with _colmap_logging(verbose):
         for number, (label, sift) in enumerate(DESCRIPTOR_PASSES):
-            if best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names):
+            if holds_enough():
                 break
             if number > 0:
                 CONSOLE.print(
@@ -258,8 +266,7 @@ def run_sfm(
             database = work_dir / ("database.db" if number == 0 else f"database_{number}.db")
             _extract_and_match(database, image_dir, names, camera_model, matching, sift, label, verbose)
             for k, attempt in enumerate(MAPPER_ATTEMPTS):
-                enough = best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names)
-                if k >= MIN_ATTEMPTS and enough:
+                if k >= MIN_ATTEMPTS and holds_enough():
                     break
                 if k >= MIN_ATTEMPTS:
                     CONSOLE.print(
@@ -302,7 +309,14 @@ def run_sfm(
 
 
 def _extract_and_match(
-    database: Path, image_dir: Path, names: list[str], camera_model: str, matching: str, sift: dict[str, bool], label: str, verbose: bool
+    database: Path,
+    image_dir: Path,
+    names: list[str],
+    camera_model: str,
+    matching: str,
+    sift: dict[str, bool],
+    label: str,
+    verbose: bool,
 ) -> None:
     """SIFT extraction (COLMAP's options, then ``sift``'s) and matching into ``database``, on one thread
     each, with fixed seeds (see :func:`run_sfm`)."""
