@@ -238,10 +238,10 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
     """COLMAP numbers images in the order its extraction threads finish them, its matcher on
     several threads now and then keeps other matches (1 run in 85 under load), and its two-view
     RANSAC draws a new seed each run: without the fixes, the poses (and on harder captures the
-    registered set) change from run to run. The mapper starts at least twice and keeps the model
-    that registers the most images and explains the most observations."""
-    from seathru_nerfstudio.data.sfm import MIN_ATTEMPTS, run_sfm
-    from seathru_nerfstudio.data.sfm_models import num_observations
+    registered set) change from run to run. The mapper starts until two starts are complete and
+    keeps the model that registers the most images and explains the most observations."""
+    from seathru_nerfstudio.data.sfm import COMPLETE_STARTS, RETRY_BELOW_FRACTION, run_sfm
+    from seathru_nerfstudio.data.sfm_models import complete_starts, num_observations
 
     runs = []
     for k in range(3):
@@ -249,7 +249,9 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
         reconstruction = result.reconstruction
         poses = {reconstruction.images[i].name: reconstruction.images[i].cam_from_world().matrix() for i in reconstruction.reg_image_ids()}
         runs.append((result.registered, poses, reconstruction.num_points3D()))
-        assert len(result.attempts) >= MIN_ATTEMPTS  # a complete model is checked against another start
+        # a complete model is checked against another complete start, and the mapper stops there
+        assert complete_starts(result.attempts, len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS
+        assert complete_starts(result.attempts[:-1], len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS - 1
         assert set(result.descriptors) == {"SIFT"}  # registered fully: no second descriptor pass
         ranks = list(zip(result.attempts, result.observations))
         assert ranks[result.kept] == max(ranks) == (len(result.registered), num_observations(reconstruction))

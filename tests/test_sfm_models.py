@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from seathru_nerfstudio.data.sfm_models import model_rank, num_observations, rotation_angle_deg, rotation_disagreement_deg
+from seathru_nerfstudio.data.sfm_models import complete_starts, model_rank, num_observations, rotation_angle_deg, rotation_disagreement_deg
 
 
 def _cameras(n: int, seed: int) -> np.ndarray:
@@ -70,6 +70,12 @@ def _model(num_images: int, track_lengths: list[int]) -> SimpleNamespace:
     """What model_rank reads of a pycolmap Reconstruction."""
     points = {k: SimpleNamespace(track=SimpleNamespace(length=lambda n=n: n)) for k, n in enumerate(track_lengths)}
     return SimpleNamespace(points3D=points, num_reg_images=lambda: num_images)
+
+
+@pytest.mark.parametrize(("counts", "complete"), [([], 0), ([2, 21], 1), ([2, 21, 21], 2), ([20, 19, 24], 2), ([19, 19], 0)])
+def test_a_start_is_complete_from_its_share_of_the_images_on(counts: list[int], complete: int) -> None:
+    """24 images at 80%: 19.2 is the line, so 19 registered views fall short and 20 count."""
+    assert complete_starts(counts, 24, 0.8) == complete
 
 
 def test_models_rank_by_images_then_by_observations() -> None:

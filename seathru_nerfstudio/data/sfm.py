@@ -31,7 +31,7 @@ import numpy.typing as npt
 import pycolmap
 
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress, status
-from seathru_nerfstudio.data.sfm_models import model_rank, models_disagreement_deg, num_observations
+from seathru_nerfstudio.data.sfm_models import complete_starts, model_rank, models_disagreement_deg, num_observations
 from seathru_nerfstudio.input_errors import InputError
 
 # Import order matters: pycolmap's extension exports its own zlib symbols. If it is loaded
@@ -126,16 +126,19 @@ MIN_REGISTERED_FRACTION = 0.5
 """Default of ``--min-registered-fraction``: below this share of the images in the best model,
 structure from motion fails (a NeRF of a few views of a larger capture is not what was asked)."""
 RETRY_BELOW_FRACTION = 0.8
-"""The mapper tries again (:data:`MAPPER_ATTEMPTS`) while its best model holds less than this share."""
-MIN_ATTEMPTS = 2
-"""The mapper always runs from this many of :data:`MAPPER_ATTEMPTS` (other initial pairs), however
-many images the first registers: a model can hold every image and still be wrong. On a path-traced
-fog scene (``seathru-pathtrace --preset fog --seed 1``, one focal length) the first try registered
-24/24 views 5.2 degrees off the true rotations with the scene's depth halved, and explained 3981
+"""A start of the mapper that registers this share of the images is complete (:data:`COMPLETE_STARTS`);
+while none is, the images are matched again (:data:`DESCRIPTOR_PASSES`)."""
+COMPLETE_STARTS = 2
+"""The mapper runs from other initial pairs (:data:`MAPPER_ATTEMPTS`) until this many of its
+starts hold at least :data:`RETRY_BELOW_FRACTION` of the images, or its settings run out: a model
+can hold every image and still be wrong, and two complete starts let the one that explains more
+(:func:`~seathru_nerfstudio.data.sfm_models.model_rank`) win. Bundle adjustment drops
+observations it cannot explain, so a wrong model explains fewer. On a path-traced fog scene
+(``seathru-pathtrace --preset fog --seed 1``, one focal length) the first start registered 24/24
+views 5.2 degrees off the true rotations with the scene's depth halved, and explained 3981
 observations at 0.62 px; the second and third registered the same 24 views 0.6 degrees off and
-explained 4200 and 4190 at 0.56 px. Bundle adjustment drops observations it cannot explain, so
-the model that keeps the most
-(:func:`~seathru_nerfstudio.data.sfm_models.model_rank`) is kept."""
+explained 4200 and 4190 at 0.56 px. With pooled SIFT alone, coastal layout 0's second start held
+24/24 views 38 degrees off, and its third 24/24 at 1.1 degrees with more observations."""
 MAPPER_ATTEMPTS: tuple[dict[str, float], ...] = (
     {},  # COLMAP's defaults
     # other initial pairs: more of them tried, weaker ones accepted, and a different sampling seed
@@ -227,13 +230,12 @@ def run_sfm(
     matched on one thread (on two, under load, about one run in a hundred matched other
     features and gave other poses), the two-view RANSAC has a fixed seed, and the mapper runs on
     one thread with fixed seeds
-    (:func:`mapper_options`). While the best model holds less than :data:`RETRY_BELOW_FRACTION`
-    of the images, and at least :data:`MIN_ATTEMPTS` times, the mapper runs again with the next of
-    :data:`MAPPER_ATTEMPTS` (other initial pairs). While it still holds less than that share, the
-    images are matched again with the next of :data:`DESCRIPTOR_PASSES` (pooled SIFT) and mapped as
-    before. Over all tries the model with the most images wins, and among those the one that
-    explains the most observations (:func:`~seathru_nerfstudio.data.sfm_models.model_rank`; the
-    first, on a tie).
+    (:func:`mapper_options`). Until :data:`COMPLETE_STARTS` of its starts hold
+    :data:`RETRY_BELOW_FRACTION` of the images, the mapper runs again with the next of
+    :data:`MAPPER_ATTEMPTS` (other initial pairs). While no start holds that share, the images are
+    matched again with the next of :data:`DESCRIPTOR_PASSES` (pooled SIFT) and mapped as before.
+    Over all tries the model with the most images wins, and among those the one that explains the
+    most observations (:func:`~seathru_nerfstudio.data.sfm_models.model_rank`; the first, on a tie).
 
     Returns that model; images outside it are ``unregistered``. Raises :class:`SfmError` when no
     model could be built, or when it holds less than ``min_registered_fraction`` of the images.
@@ -251,12 +253,13 @@ def run_sfm(
 
     best, candidates, descriptors = None, [], []
 
-    def holds_enough() -> bool:
-        return best is not None and best.num_reg_images() >= RETRY_BELOW_FRACTION * len(names)
+    def num_complete() -> int:
+        counts = [m.num_reg_images() if m is not None else 0 for m in candidates]
+        return complete_starts(counts, len(names), RETRY_BELOW_FRACTION)
 
     with _colmap_logging(verbose):
         for number, (label, sift) in enumerate(DESCRIPTOR_PASSES):
-            if holds_enough():
+            if num_complete() > 0:
                 break
             if number > 0:
                 CONSOLE.print(
@@ -266,12 +269,12 @@ def run_sfm(
             database = work_dir / ("database.db" if number == 0 else f"database_{number}.db")
             _extract_and_match(database, image_dir, names, camera_model, matching, sift, label, verbose)
             for k, attempt in enumerate(MAPPER_ATTEMPTS):
-                if k >= MIN_ATTEMPTS and holds_enough():
+                if num_complete() >= COMPLETE_STARTS:
                     break
-                if k >= MIN_ATTEMPTS:
+                if k >= COMPLETE_STARTS:  # beyond the minimum of starts
                     CONSOLE.print(
-                        f"[yellow]The mapper registered {candidates[-1].num_reg_images() if candidates[-1] else 0}/"
-                        f"{len(names)} images; trying again with other initial pairs ({k + 1}/{len(MAPPER_ATTEMPTS)})"
+                        f"[yellow]{num_complete()} of the mapper's {len(candidates)} starts hold {RETRY_BELOW_FRACTION:.0%} "
+                        f"of the {len(names)} images; trying again with other initial pairs ({k + 1}/{len(MAPPER_ATTEMPTS)})"
                     )
                 tries = len(candidates)
                 models = _map(database, image_dir, work_dir / f"models_{tries}", attempt, len(names), tries)

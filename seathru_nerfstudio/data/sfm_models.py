@@ -9,7 +9,7 @@ of each model's arbitrary similarity (gauge).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 import numpy.typing as npt
@@ -22,6 +22,12 @@ def num_observations(reconstruction: pycolmap.Reconstruction) -> int:
     """Feature observations the model's 3D points explain (the summed length of their tracks):
     what its bundle adjustment kept as inliers (a count)."""
     return int(sum(point.track.length() for point in reconstruction.points3D.values()))
+
+
+def complete_starts(registered_counts: Sequence[int], num_images: int, fraction: float) -> int:
+    """How many of the mapper's starts, given the images each registered, hold at least ``fraction``
+    of ``num_images``."""
+    return sum(count >= fraction * num_images for count in registered_counts)
 
 
 def model_rank(reconstruction: pycolmap.Reconstruction) -> tuple[int, int]:

@@ -42,11 +42,12 @@ from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 GENERATOR_VERSION = 2
 """Bumped when the same options would render a different scene (part of the cache key)."""
-REGISTRATION_VERSION = 3
+REGISTRATION_VERSION = 4
 """Bumped when the same renders would register otherwise (part of the cache key, not of the
 renders' key: a cached scene keeps its renders and is registered again, in seconds). 2: the
 mapper's model chosen among two starts by the observations it explains (``data/sfm.py``); 3: pooled
-SIFT descriptors matched again where SIFT registers under 80% of the views."""
+SIFT descriptors matched again where SIFT registers under 80% of the views; 4: the mapper starts until
+two of its starts hold 80% of the views."""
 DEFAULT_ROOT = Path("outputs/pathtraced")
 EXTRA_FIELDS = {"dry": "gt_dry_file_path", "z_depth": "gt_z_depth_file_path", "ids": "gt_ids_file_path"}
 """Frame fields beside nerfstudio's and the benchmark's: the medium-free render (16-bit PNG),
