@@ -73,7 +73,7 @@ def _model(num_images: int, track_lengths: list[int]) -> SimpleNamespace:
 
 
 @pytest.mark.parametrize(("counts", "complete"), [([], 0), ([2, 21], 1), ([2, 21, 21], 2), ([20, 19, 24], 2), ([19, 19], 0)])
-def test_a_start_is_complete_from_its_share_of_the_images_on(counts: list[int], complete: int) -> None:
+def test_a_start_is_complete_from_80_percent_of_the_images(counts: list[int], complete: int) -> None:
     """24 images at 80%: 19.2 is the line, so 19 registered views fall short and 20 count."""
     assert complete_starts(counts, 24, 0.8) == complete
 
