@@ -13,7 +13,10 @@ and the true backscatter ``I − J e^{−β_D z}``, and fits under the best-fit 
 * one ``J`` per point with the true backscatter: what the path-traced backscatter does alone;
 * the observed colours (both), with the true and with the table's ranges.
 
-It also prints how the true backscatter at the observations compares with the best fit, by range.
+It also prints how the true backscatter at the observations compares with the best fit, by range, and
+how much of it grows with each view's direct light ``J e^{−β_D z}`` times the range: the object's own light
+scattered forward into the pixels around it, which a colour-against-range fit can only read as an
+attenuation lower by about ``f / (1 + f z)`` (``f`` that coefficient, 1/m).
 
     .venv/bin/python scripts/probe_fit_error.py outputs/pathtraced/turbid [more scenes]
 """
@@ -90,6 +93,16 @@ def probe(scene: Path) -> None:
             ratio = sample["B_true"][seen][cell].sum(0) / sample["B_fit"][seen][cell].sum(0)
             print(f"  true range {near:>4.1f}-{far:<5.1f} m ({int(cell.sum()):4d} observations): true / best-fit backscatter "
                   f"{' '.join(f'{r:.3f}' for r in ratio)}")
+    # the object's light scattered forward into nearby pixels rides on the "backscatter" I - J e^{-beta_D z}:
+    # it grows with the direct light and the range, which the fit can only read as a lower attenuation
+    per_view_direct = (sample["J"] * attenuation)[seen]
+    excess = (sample["B_true"] - sample["B_fit"])[seen]
+    coefficients = []
+    for c in range(3):
+        design = np.stack([np.ones_like(z), per_view_direct[:, c] * z, -np.expm1(-beta_b[c] * z)], axis=1)
+        coefficients.append(np.linalg.lstsq(design, excess[:, c], rcond=None)[0][1])
+    print(f"  true - best-fit backscatter per unit of direct light and metre (forward scatter, 1/m): "
+          f"{' '.join(f'{v:+.3f}' for v in coefficients)}; the fit can read beta_D lower by about that / (1 + that x range)")
     cases = (
         ("one J per point, best-fit backscatter (exact)", point_clean * attenuation + sample["B_fit"], true_range),
         ("each view's own J, best-fit backscatter", sample["J"] * attenuation + sample["B_fit"], true_range),
