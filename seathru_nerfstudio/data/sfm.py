@@ -175,11 +175,12 @@ SEED = 0
 
 
 @contextlib.contextmanager
-def _colmap_logging(verbose: bool) -> Iterator[None]:
-    """Silence COLMAP's INFO logging unless ``verbose``."""
+def _colmap_logging(verbose: bool, quiet_level: int = 2) -> Iterator[None]:
+    """Unless ``verbose``, show only COLMAP's log lines of ``quiet_level`` and above (glog's levels:
+    0 info, 1 warning, 2 error, 3 fatal)."""
     previous = pycolmap.logging.minloglevel
     if not verbose:
-        pycolmap.logging.minloglevel = 2
+        pycolmap.logging.minloglevel = quiet_level
     try:
         yield
     finally:
@@ -277,7 +278,10 @@ def run_sfm(
                         f"of the {len(names)} images; trying again with other initial pairs ({k + 1}/{len(MAPPER_ATTEMPTS)})"
                     )
                 tries = len(candidates)
-                models = _map(database, image_dir, work_dir / f"models_{tries}", attempt, len(names), tries)
+                # a start that builds no model logs an error ("Failed to create any sparse model"); report() and
+                # SfmError say what each start did, in words that name the user's folder
+                with _colmap_logging(verbose, quiet_level=3):
+                    models = _map(database, image_dir, work_dir / f"models_{tries}", attempt, len(names), tries)
                 candidates.append(max(models.values(), key=model_rank, default=None))
                 descriptors.append(label)
                 if candidates[-1] is not None and (best is None or model_rank(candidates[-1]) > model_rank(best)):
