@@ -1,0 +1,116 @@
+"""Where is a trained run's depth wrong? (About a minute of CPU per run on 2 cores; needs a run saved
+with ``seathru-bench run --save-model`` or ``ns-train``, and the scene's ground truth.)
+
+Renders the run's held-out views and keeps the object pixels (``ground_truth/depth`` finite: the
+true range in world units, metres on ``seathru-pathtrace`` scenes). The benchmark's mean depth
+error is the mean of ``|depth − range| / range`` over them. Printed, by fifth of the true range:
+
+* the true direct transmittance ``e^{−β z}`` at the band's middle range, with ``β`` the truth's
+  smallest attenuation (``ground_truth/medium.json``): how much of a surface's own light reaches
+  the camera in the clearest channel;
+* the band's mean and median abs-rel and its share of the error sum;
+* the median ``log(depth / range)`` (< 0: surfaces placed too near);
+* the share of pixels more than 25% off, and how many of those are too near;
+* the mean object opacity.
+
+Then the mean abs-rel over the pixels whose transmittance is above 5% and over the rest, within the
+SfM far bound and beyond it (where no SfM depth says where a surface is), and where
+the surfaces placed too near end up against the median depth the run gives the open water (where
+it fills the open water with a wall, ``scripts/probe_open_water.py``). It says whether the mean
+error comes from surfaces the water hides (where the images barely fix a range) or from ones it
+shows, and whether a wall in the open water stands in front of them.
+
+    .venv/bin/python scripts/probe_depth_error.py RUN/config.yml outputs/pathtraced/turbid_s3
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+NUM_BANDS = 5
+FAR_OFF = 0.25
+"""An abs-rel above this counts as a pixel placed wrong."""
+VISIBLE_TRANSMITTANCE = 0.05
+"""A surface counts as shown by the water where at least this share of its light reaches the camera."""
+
+
+def object_depths(config: Path, scene: Path) -> dict:
+    """Per object pixel of every held-out view: ``range`` (true, world units), ``depth`` (the run's
+    median depth, world units) and ``accumulation``; ``open_depth``: the run's depth on the open water;
+    ``far_bound``: the SfM far bound in world units (nan without one)."""
+    from nerfstudio.utils.eval_utils import eval_setup
+
+    from seathru_nerfstudio.metrics import offline_lpips
+
+    with offline_lpips():  # nerfacto's runs too, offline
+        _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
+    scale = float(dataset._dataparser_outputs.dataparser_scale)
+    far_plane = pipeline.datamanager.train_dataparser_outputs.metadata.get("far_plane")
+    columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth")}
+    columns["far_bound"] = float(far_plane) / scale if far_plane is not None else float("nan")
+    for index in range(len(dataset)):
+        name = Path(dataset.image_filenames[index]).stem
+        true_range = np.load(scene / "ground_truth" / "depth" / f"{name}.npy")
+        objects = np.isfinite(true_range) & (true_range > 0)
+        with torch.no_grad():
+            outputs = model.get_outputs_for_camera(dataset.cameras[index : index + 1])
+        depth = outputs["depth"][..., 0].numpy() / scale
+        columns["range"].append(true_range[objects])
+        columns["depth"].append(depth[objects])
+        columns["open_depth"].append(depth[~np.isfinite(true_range)])
+        columns["accumulation"].append(outputs["accumulation"][..., 0].numpy()[objects])
+    return {key: np.concatenate(parts) if isinstance(parts, list) else parts for key, parts in columns.items()}
+
+
+def main(config: Path, scene: Path) -> None:
+    samples = object_depths(config, scene)
+    true_range, depth = samples["range"], samples["depth"]
+    if true_range.size == 0:
+        sys.exit(f"{scene}: the held-out views show no object (ground_truth/depth is inf everywhere)")
+    beta = min(json.loads((scene / "ground_truth" / "medium.json").read_text())["beta_D"])
+    rel = np.abs(depth - true_range) / true_range
+    log_ratio = np.log(np.maximum(depth, 1e-6) / true_range)
+    print(f"{true_range.size} object pixels: abs-rel mean {rel.mean():.3f}, median {np.median(rel):.3f} (clearest β_D {beta} /m)")
+    edges = np.quantile(true_range, np.linspace(0.0, 1.0, NUM_BANDS + 1))
+    for low, high in zip(edges[:-1], edges[1:]):
+        band = (true_range >= low) & (true_range <= high)
+        off = rel[band] > FAR_OFF
+        print(
+            f"range {low:5.2f}–{high:5.2f}: transmittance {np.exp(-beta * 0.5 * (low + high)):.3f}, abs-rel mean "
+            f"{rel[band].mean():.3f} median {np.median(rel[band]):.3f} ({rel[band].sum() / rel.sum():.0%} of the sum), "
+            f"log ratio {np.median(log_ratio[band]):+.3f}, off by >{FAR_OFF:.0%}: {off.mean():.0%} "
+            f"({np.mean(log_ratio[band][off] < 0) if off.any() else 0.0:.0%} too near), opacity {samples['accumulation'][band].mean():.3f}"
+        )
+    shown = np.exp(-beta * true_range) >= VISIBLE_TRANSMITTANCE
+    for label, mask in (("shown", shown), ("hidden", ~shown)):
+        if mask.any():
+            print(f"transmittance {'≥' if label == 'shown' else '<'} {VISIBLE_TRANSMITTANCE}: {mask.mean():.0%} of the pixels, abs-rel mean {rel[mask].mean():.3f}")
+    far_bound = samples["far_bound"]
+    if np.isfinite(far_bound):
+        beyond = true_range > far_bound
+        for label, mask in ((f"within the SfM far bound ({far_bound:.2f})", ~beyond), ("beyond it", beyond)):
+            if mask.any():
+                print(
+                    f"{label}: {mask.mean():.1%} of the pixels, {rel[mask].sum() / rel.sum():.0%} of the sum, abs-rel mean "
+                    f"{rel[mask].mean():.3f}, log ratio {np.median(log_ratio[mask]):+.3f}, rendered depth median {np.median(depth[mask]):.2f}"
+                )
+    too_near = (rel > FAR_OFF) & (log_ratio < 0)
+    if too_near.any():
+        open_depth = samples["open_depth"]
+        print(
+            f"placed >{FAR_OFF:.0%} too near: {too_near.mean():.0%} of the pixels, {rel[too_near].sum() / rel.sum():.0%} of the sum; "
+            f"true range median {np.median(true_range[too_near]):.2f}, rendered {np.median(depth[too_near]):.2f}; "
+            f"the open water's depth quartiles {', '.join(f'{v:.2f}' for v in np.quantile(open_depth, [0.25, 0.5, 0.75])) if open_depth.size else '–'}"
+        )
+
+
+if __name__ == "__main__":
+    if len(sys.argv) != 3:
+        sys.exit("usage: probe_depth_error.py RUN/config.yml SCENE_FOLDER")
+    main(Path(sys.argv[1]), Path(sys.argv[2]))
