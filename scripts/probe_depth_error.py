@@ -28,9 +28,9 @@ from __future__ import annotations
 import json
 import sys
 from pathlib import Path
+from typing import Tuple
 
 import numpy as np
-import torch
 
 NUM_BANDS = 5
 FAR_OFF = 0.25
@@ -39,37 +39,28 @@ VISIBLE_TRANSMITTANCE = 0.05
 """A surface counts as shown by the water where at least this share of its light reaches the camera."""
 
 
-def object_depths(config: Path, scene: Path) -> dict:
+def object_depths(config: Path, scene: Path) -> Tuple[dict, float]:
     """Per object pixel of every held-out view: ``range`` (true, world units), ``depth`` (the run's
     median depth, world units) and ``accumulation``; ``open_depth``: the run's depth on the open water;
-    ``far_bound``: the SfM far bound in world units (nan without one)."""
-    from nerfstudio.utils.eval_utils import eval_setup
+    and the SfM far bound in world units (nan without one)."""
+    from held_out_views import held_out_renders, load_run
 
-    from seathru_nerfstudio.metrics import offline_lpips
-
-    with offline_lpips():  # nerfacto's runs too, offline
-        _, pipeline, _, _ = eval_setup(config, test_mode="test")
-    model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
-    scale = float(dataset._dataparser_outputs.dataparser_scale)
+    pipeline, scale = load_run(config)
     far_plane = pipeline.datamanager.train_dataparser_outputs.metadata.get("far_plane")
+    far_bound = float(far_plane) / scale if far_plane is not None else float("nan")
     columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth")}
-    columns["far_bound"] = float(far_plane) / scale if far_plane is not None else float("nan")
-    for index in range(len(dataset)):
-        name = Path(dataset.image_filenames[index]).stem
-        true_range = np.load(scene / "ground_truth" / "depth" / f"{name}.npy")
+    for _, _, _, true_range, outputs in held_out_renders(pipeline, scene):
         objects = np.isfinite(true_range) & (true_range > 0)
-        with torch.no_grad():
-            outputs = model.get_outputs_for_camera(dataset.cameras[index : index + 1])
         depth = outputs["depth"][..., 0].numpy() / scale
         columns["range"].append(true_range[objects])
         columns["depth"].append(depth[objects])
-        columns["open_depth"].append(depth[~np.isfinite(true_range)])
         columns["accumulation"].append(outputs["accumulation"][..., 0].numpy()[objects])
-    return {key: np.concatenate(parts) if isinstance(parts, list) else parts for key, parts in columns.items()}
+        columns["open_depth"].append(depth[~np.isfinite(true_range)])
+    return {key: np.concatenate(parts) for key, parts in columns.items()}, far_bound
 
 
 def main(config: Path, scene: Path) -> None:
-    samples = object_depths(config, scene)
+    samples, far_bound = object_depths(config, scene)
     true_range, depth = samples["range"], samples["depth"]
     if true_range.size == 0:
         sys.exit(f"{scene}: the held-out views show no object (ground_truth/depth is inf everywhere)")
@@ -91,7 +82,6 @@ def main(config: Path, scene: Path) -> None:
     for label, mask in (("shown", shown), ("hidden", ~shown)):
         if mask.any():
             print(f"transmittance {'≥' if label == 'shown' else '<'} {VISIBLE_TRANSMITTANCE}: {mask.mean():.0%} of the pixels, abs-rel mean {rel[mask].mean():.3f}")
-    far_bound = samples["far_bound"]
     if np.isfinite(far_bound):
         beyond = true_range > far_bound
         for label, mask in ((f"within the SfM far bound ({far_bound:.2f})", ~beyond), ("beyond it", beyond)):

@@ -31,14 +31,13 @@ NUM_BANDS = 5
 def open_water_samples(config: Path, scene: Path):
     """Per open-water pixel of every held-out view: ``up`` (sin of the elevation), ``accumulation``,
     ``clean`` (3), the render ``rgb`` (3), the true colour (3) and ``depth`` (world units)."""
-    from nerfstudio.utils.eval_utils import eval_setup
+    from held_out_views import held_out_renders, load_run
 
     from seathru_nerfstudio.export import OPACITY_THRESHOLD
     from seathru_nerfstudio.medium_field import sin_elevation
 
-    _, pipeline, _, _ = eval_setup(config, test_mode="test")
+    pipeline, scale = load_run(config)
     model, dataset = pipeline.model, pipeline.datamanager.eval_dataset
-    scale = float(dataset._dataparser_outputs.dataparser_scale)
     medium = model.medium_field
     if hasattr(medium, "veil_rise"):
         print(
@@ -47,13 +46,9 @@ def open_water_samples(config: Path, scene: Path):
             f"{[round(float(v), 3) for v in medium.veil_rise_from]} to {float(medium.veil_rise_to):+.3f}"
         )
     columns = {k: [] for k in ("up", "accumulation", "clean", "rgb", "truth", "depth")}
-    for index in range(len(dataset)):
-        name = Path(dataset.image_filenames[index]).stem
-        true_range = np.load(scene / "ground_truth" / "depth" / f"{name}.npy")
+    for index, name, camera, true_range, outputs in held_out_renders(pipeline, scene):
         open_water = ~np.isfinite(true_range)
-        camera = dataset.cameras[index : index + 1]
         with torch.no_grad():
-            outputs = model.get_outputs_for_camera(camera)
             directions = camera.generate_rays(camera_indices=0).directions
             up = sin_elevation(directions, model.medium_field.vertical)[..., 0]
         values = {
