@@ -6,6 +6,7 @@ that hold whatever the noise, with the noise measured by a second seed where it 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import subprocess
 import sys
@@ -14,7 +15,7 @@ import numpy as np
 import pytest
 
 from seathru_nerfstudio.data.pathtrace.align import Similarity, umeyama
-from seathru_nerfstudio.data.pathtrace.cli import PathtraceConfig, generate
+from seathru_nerfstudio.data.pathtrace.cli import GENERATOR_VERSION, REGISTRATION_VERSION, PathtraceConfig, generate
 from seathru_nerfstudio.data.pathtrace.presets import HOLDOUT_EVERY, PRESETS
 from seathru_nerfstudio.data.pathtrace.render import OPEN_WATER_ID, PathtraceError, Renderer
 from seathru_nerfstudio.data.pathtrace.scene import make_layout, sensor_dict
@@ -232,6 +233,31 @@ def test_bad_options_fail_in_one_line(tmp_path):
     lines = [line for line in (result.stdout + result.stderr).splitlines() if line.strip()]
     assert len(lines) == 1 and "unknown preset 'reef'" in lines[0]
     assert not (tmp_path / "y").exists()
+
+
+def test_the_sun_options_replace_the_presets_sun_and_name_other_renders(tmp_path):
+    """``--sun-elevation-deg`` / ``--sun-azimuth-deg`` replace the preset's sun (and only it), enter the
+    renders' key, and leave the key of a scene that does not give them as it was."""
+    from seathru_nerfstudio.data.pathtrace.scene import sun_direction
+
+    default = PathtraceConfig(preset="coastal", seed=8)
+    assert default.preset_used() == PRESETS["coastal"]
+    low = dataclasses.replace(default, sun_elevation_deg=45.0, sun_azimuth_deg=100.0)
+    assert low.preset_used() == dataclasses.replace(PRESETS["coastal"], sun_elevation_deg=45.0, sun_azimuth_deg=100.0)
+    assert low.cache_key(renders_only=True) != default.cache_key(renders_only=True)
+    overhead = dataclasses.replace(default, sun_elevation_deg=90.0).preset_used()
+    assert np.allclose(sun_direction(overhead), [0.0, 1.0, 0.0])
+    keys = {k for k in dataclasses.asdict(default) if k not in ("output_dir", "overwrite", "variant")}
+    assert default.cache_key() == hashlib.sha256(json.dumps(
+        {**{k: dataclasses.asdict(default)[k] for k in keys - {"sun_elevation_deg", "sun_azimuth_deg"}},
+         "spp": default.samples_per_pixel(), "generator_version": GENERATOR_VERSION, "registration_version": REGISTRATION_VERSION},
+        sort_keys=True, default=str).encode()).hexdigest()[:16]  # fmt: skip
+    for bad in (0.0, -10.0, 91.0, float("nan")):
+        with pytest.raises(PathtraceError, match="--sun-elevation-deg"):
+            generate(PathtraceConfig(sun_elevation_deg=bad, output_dir=tmp_path / "x"))
+    with pytest.raises(PathtraceError, match="--sun-azimuth-deg"):
+        generate(PathtraceConfig(sun_azimuth_deg=float("inf"), output_dir=tmp_path / "x"))
+    assert not (tmp_path / "x").exists()
 
 
 def test_sun_disc_carries_the_sun_irradiance():

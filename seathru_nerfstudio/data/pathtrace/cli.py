@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import math
 import shutil
 import sys
 import time
@@ -34,7 +35,7 @@ from nerfstudio.utils.rich_utils import CONSOLE
 from seathru_nerfstudio.data.ground_truth import FRAME_FIELDS, GT_CLEAN_FILENAMES, GT_DEPTH_FILENAMES
 from seathru_nerfstudio.data.io import OutputFolderError, atomic_output_folder, write_png16, write_png16_gray
 from seathru_nerfstudio.data.pathtrace.align import rotation_error_deg, umeyama
-from seathru_nerfstudio.data.pathtrace.presets import HOLDOUT_EVERY, PRESETS
+from seathru_nerfstudio.data.pathtrace.presets import HOLDOUT_EVERY, PRESETS, Preset
 from seathru_nerfstudio.data.pathtrace.render import PathtraceError, Renderer
 from seathru_nerfstudio.data.pathtrace.scene import make_layout
 from seathru_nerfstudio.data.pathtrace.truth import fit_veil_and_backscatter
@@ -49,6 +50,8 @@ mapper's model chosen among two starts by the observations it explains (``data/s
 SIFT descriptors matched again where SIFT registers under 80% of the views; 4: the mapper starts until
 two of its starts hold 80% of the views."""
 DEFAULT_ROOT = Path("outputs/pathtraced")
+SUN_OPTIONS = ("sun_elevation_deg", "sun_azimuth_deg")
+"""Options that replace the preset's sun (None: the preset's own)."""
 EXTRA_FIELDS = {"dry": "gt_dry_file_path", "z_depth": "gt_z_depth_file_path", "ids": "gt_ids_file_path"}
 """Frame fields beside nerfstudio's and the benchmark's: the medium-free render (16-bit PNG),
 the z-depth (.npy float32, m) and the object ids (.npy int16, -1 = open water)."""
@@ -86,6 +89,15 @@ class PathtraceConfig:
     """Mitsuba variant (auto: llvm_ad_rgb when a libLLVM >= 19 is installed)."""
     overwrite: bool = False
     """Replace a folder that holds a different scene."""
+    sun_elevation_deg: Optional[float] = None
+    """The sun's elevation, degrees, in (0, 90] (default: the preset's, 60); in water the refracted one, 41.4 or more."""
+    sun_azimuth_deg: Optional[float] = None
+    """The sun's azimuth, degrees from behind the rig towards its right (default: the preset's, 30)."""
+
+    def preset_used(self) -> Preset:
+        """The preset with the sun options that are given in place of its own."""
+        given = {name: getattr(self, name) for name in SUN_OPTIONS if getattr(self, name) is not None}
+        return dataclasses.replace(PRESETS[self.preset], **given)
 
     def samples_per_pixel(self) -> int:
         """``spp``, or the preset's where it is not given."""
@@ -98,6 +110,7 @@ class PathtraceConfig:
         """Hash of the options that determine the folder (``renders_only``: the renders alone,
         without the pose options, so a new pose run reuses them)."""
         skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_camera_model", "sfm_points_per_view"} if renders_only else set())
+        skip |= {name for name in SUN_OPTIONS if getattr(self, name) is None}  # a scene cached before they existed keeps its key
         options = {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
         options["spp"] = self.samples_per_pixel()  # the default and its value name the same renders
         options["generator_version"] = GENERATOR_VERSION
@@ -115,6 +128,10 @@ def validate(config: PathtraceConfig) -> None:
         raise PathtraceError("--num-views must be at least 3")
     if (config.spp is not None and config.spp < 1) or config.max_depth < 1:
         raise PathtraceError("--spp and --max-depth must be at least 1")
+    if config.sun_elevation_deg is not None and not 0.0 < config.sun_elevation_deg <= 90.0:
+        raise PathtraceError(f"--sun-elevation-deg must be in (0, 90] degrees, got {config.sun_elevation_deg}")
+    if config.sun_azimuth_deg is not None and not math.isfinite(config.sun_azimuth_deg):
+        raise PathtraceError(f"--sun-azimuth-deg must be a finite angle, got {config.sun_azimuth_deg}")
 
 
 def _read_record(folder: Path) -> Optional[Dict[str, Any]]:
@@ -142,7 +159,7 @@ def generate(config: PathtraceConfig) -> Path:
     reuse = record is not None and record.get("render_hash") == render_key
     if record is not None and not reuse and not config.overwrite:
         raise OutputFolderError(f"{out} holds a scene rendered with other options; pass --overwrite or choose another --output-dir")
-    preset = PRESETS[config.preset]
+    preset = config.preset_used()
     start = time.perf_counter()
     layout = make_layout(config.seed, config.num_views, preset)
     names = [f"frame_{i:05d}.png" for i in range(config.num_views)]
