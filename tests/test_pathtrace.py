@@ -237,7 +237,7 @@ def test_bad_options_fail_in_one_line(tmp_path):
 
 def test_the_sun_options_replace_the_presets_sun_and_name_other_renders(tmp_path):
     """``--sun-elevation-deg`` / ``--sun-azimuth-deg`` replace the preset's sun (and only it), enter the
-    renders' key, and leave the key of a scene that does not give them as it was."""
+    renders' key, and leave the key of a scene that does not give them (nor ``--sfm-focal-prior``) as it was."""
     from seathru_nerfstudio.data.pathtrace.scene import sun_direction
 
     default = PathtraceConfig(preset="coastal", seed=8)
@@ -249,7 +249,7 @@ def test_the_sun_options_replace_the_presets_sun_and_name_other_renders(tmp_path
     assert np.allclose(sun_direction(overhead), [0.0, 1.0, 0.0])
     keys = {k for k in dataclasses.asdict(default) if k not in ("output_dir", "overwrite", "variant")}
     assert default.cache_key() == hashlib.sha256(json.dumps(
-        {**{k: dataclasses.asdict(default)[k] for k in keys - {"sun_elevation_deg", "sun_azimuth_deg"}},
+        {**{k: dataclasses.asdict(default)[k] for k in keys - {"sun_elevation_deg", "sun_azimuth_deg", "sfm_focal_prior"}},
          "spp": default.samples_per_pixel(), "generator_version": GENERATOR_VERSION, "registration_version": REGISTRATION_VERSION},
         sort_keys=True, default=str).encode()).hexdigest()[:16]  # fmt: skip
     for bad in (0.0, -10.0, 91.0, float("nan")):
@@ -258,6 +258,21 @@ def test_the_sun_options_replace_the_presets_sun_and_name_other_renders(tmp_path
     with pytest.raises(PathtraceError, match="--sun-azimuth-deg"):
         generate(PathtraceConfig(sun_azimuth_deg=float("inf"), output_dir=tmp_path / "x"))
     assert not (tmp_path / "x").exists()
+
+
+def test_the_focal_prior_is_a_pose_option_at_the_renderers_focal_length():
+    """``--sfm-focal-prior`` gives SfM the pinhole focal length of the renderer's field of view; it reuses
+    the renders, and a scene that does not ask for it keeps its key."""
+    from seathru_nerfstudio.data.pathtrace.cli import _prior_focal
+    from seathru_nerfstudio.data.synthetic.cameras import HORIZONTAL_FOV_DEG
+
+    plain = PathtraceConfig(preset="clear", seed=6, width=W, height=H)
+    prior = dataclasses.replace(plain, sfm_focal_prior=True)
+    assert _prior_focal(plain) is None
+    half_width = W / 2 / _prior_focal(prior)  # tan of half the horizontal field of view
+    assert np.degrees(2 * np.arctan(half_width)) == pytest.approx(HORIZONTAL_FOV_DEG)
+    assert prior.cache_key(renders_only=True) == plain.cache_key(renders_only=True)
+    assert prior.cache_key() != plain.cache_key()
 
 
 def test_sun_disc_carries_the_sun_irradiance():

@@ -154,6 +154,9 @@ def test_bad_options(tmp_path: Path) -> None:
         process(ProcessSeathruData(data=tmp_path / "in", output_dir=tmp_path / "out", clip_percent=60))
     with pytest.raises(ProcessDataError, match="needs RAW files"):
         process(ProcessSeathruData(data=tmp_path / "in", output_dir=tmp_path / "out", white_balance="camera"))
+    for focal in (0.0, -100.0, float("nan")):
+        with pytest.raises(ProcessDataError, match="--focal-length-px must be a positive number of pixels"):
+            process(ProcessSeathruData(data=tmp_path / "in", output_dir=tmp_path / "out", focal_length_px=focal))
     assert_nothing_written(tmp_path, {"in"})
 
 

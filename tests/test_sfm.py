@@ -344,3 +344,30 @@ def test_a_dataset_with_no_sfm_at_all_says_in_one_line_what_is_lost(tmp_path, ca
     message = " ".join(capsys.readouterr().out.split())
     assert str(tmp_path) in message and "no COLMAP model" in message and "medium fit" in message
     assert "depth_filenames" not in outputs.metadata
+
+
+@pytest.mark.parametrize("model, count", [("SIMPLE_PINHOLE", 3), ("PINHOLE", 4), ("SIMPLE_RADIAL", 4), ("OPENCV", 8)])
+def test_a_known_focal_length_is_where_the_camera_starts(small_scene, tmp_path, model, count) -> None:
+    """``--focal-length-px``: the shared camera enters the database with that focal length, the principal
+    point at the image centre and no distortion, marked as a prior; without it COLMAP guesses 1.2 × the
+    long side and marks none."""
+    import pycolmap
+
+    from seathru_nerfstudio.data.sfm import SfmError, _extract_and_match, prior_camera_params
+
+    names = sorted(p.name for p in small_scene.glob("*.png"))[:3]
+    height, width = cv2.imread(str(small_scene / names[0])).shape[:2]
+    for focal, expect_prior in ((123.5, True), (None, False)):
+        params = prior_camera_params(model, focal, small_scene / names[0])
+        database = tmp_path / f"{focal}.db"
+        _extract_and_match(database, small_scene, names, model, params, "exhaustive", {}, "SIFT", False)
+        db = pycolmap.Database.open(str(database))
+        (camera,) = db.read_all_cameras()
+        db.close()
+        assert camera.has_prior_focal_length == expect_prior and len(camera.params) == count
+        assert (camera.focal_length_x, camera.focal_length_y) == pytest.approx([123.5 if focal else 1.2 * max(width, height)] * 2)
+        assert (camera.principal_point_x, camera.principal_point_y) == pytest.approx((width / 2, height / 2))
+        assert not np.any(np.asarray(camera.params)[camera.extra_params_idxs()])
+    for bad in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(SfmError, match="--focal-length-px"):
+            prior_camera_params(model, bad, small_scene / names[0])

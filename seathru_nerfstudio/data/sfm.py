@@ -21,9 +21,10 @@ Conventions
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Literal
+from typing import Iterator, Literal, Optional
 
 import cv2  # before pycolmap, always: see the note below
 import numpy as np
@@ -187,6 +188,34 @@ def _colmap_logging(verbose: bool, quiet_level: int = 2) -> Iterator[None]:
         pycolmap.logging.minloglevel = previous
 
 
+PRIOR_PARAMS = {
+    "SIMPLE_PINHOLE": "{f},{cx},{cy}",
+    "PINHOLE": "{f},{f},{cx},{cy}",
+    "SIMPLE_RADIAL": "{f},{cx},{cy},0",
+    "RADIAL": "{f},{cx},{cy},0,0",
+    "OPENCV": "{f},{f},{cx},{cy},0,0,0,0",
+}
+"""COLMAP's parameter order per camera model, for a known focal length ``f`` (pixels), the principal
+point at the image centre and no distortion."""
+
+
+def prior_camera_params(camera_model: str, focal_length_px: Optional[float], image: Path) -> str:
+    """COLMAP's ``camera_params`` string for ``camera_model`` starting at ``focal_length_px`` (pixels of
+    ``image``, the principal point at its centre), or ``""`` (COLMAP's own guess) without it. An
+    :class:`SfmError` for a focal length that is not a finite positive number of pixels."""
+    if focal_length_px is None:
+        return ""
+    if not (math.isfinite(focal_length_px) and focal_length_px > 0):
+        raise SfmError(f"--focal-length-px must be a positive number of pixels, got {focal_length_px}")
+    if camera_model not in PRIOR_PARAMS:
+        raise SfmError(f"--focal-length-px: camera model {camera_model} is not one of {', '.join(PRIOR_PARAMS)}")
+    shape = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
+    if shape is None:
+        raise SfmError(f"{image}: could not read the image to place the principal point")
+    height, width = shape.shape[:2]
+    return PRIOR_PARAMS[camera_model].format(f=float(focal_length_px), cx=width / 2.0, cy=height / 2.0)
+
+
 def mapper_options(attempt: dict[str, float]) -> pycolmap.IncrementalPipelineOptions:
     """The incremental mapper's options for one of :data:`MAPPER_ATTEMPTS`, deterministic.
 
@@ -218,12 +247,13 @@ def run_sfm(
     verbose: bool = False,
     min_registered_fraction: float = MIN_REGISTERED_FRACTION,
     source: Path | str | None = None,
+    focal_length_px: Optional[float] = None,
 ) -> SfmResult:
     """SIFT extraction, matching and incremental mapping on every image in ``image_dir``.
 
     One camera (``camera_model``, COLMAP name) is shared by all images; its focal length
-    starts at 1.2 × the long side (no EXIF in the display copies) and is refined by bundle
-    adjustment. ``work_dir`` receives ``database.db`` (``database_1.db`` for the second descriptors)
+    starts at ``focal_length_px`` (pixels of these images) where it is given, else at 1.2 × the
+    long side (no EXIF in the display copies), and is refined by bundle adjustment. ``work_dir`` receives ``database.db`` (``database_1.db`` for the second descriptors)
     and the mapper's models.
 
     The same images give the same result: features are extracted on one thread (COLMAP numbers
@@ -248,6 +278,7 @@ def run_sfm(
         raise SfmError(f"structure from motion needs at least 2 images, {source} has {len(names)}")
     if not 0.0 <= min_registered_fraction <= 1.0:
         raise SfmError(f"--min-registered-fraction must be in [0, 1], got {min_registered_fraction}")
+    camera_params = prior_camera_params(camera_model, focal_length_px, image_dir / names[0])
     work_dir.mkdir(parents=True, exist_ok=True)
     if matching == "auto":
         matching = "exhaustive" if len(names) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
@@ -268,7 +299,7 @@ def run_sfm(
                     f"matching again with {label} descriptors"
                 )
             database = work_dir / ("database.db" if number == 0 else f"database_{number}.db")
-            _extract_and_match(database, image_dir, names, camera_model, matching, sift, label, verbose)
+            _extract_and_match(database, image_dir, names, camera_model, camera_params, matching, sift, label, verbose)
             for k, attempt in enumerate(MAPPER_ATTEMPTS):
                 if num_complete() >= COMPLETE_STARTS:
                     break
@@ -320,15 +351,18 @@ def _extract_and_match(
     image_dir: Path,
     names: list[str],
     camera_model: str,
+    camera_params: str,
     matching: str,
     sift: dict[str, bool],
     label: str,
     verbose: bool,
 ) -> None:
     """SIFT extraction (COLMAP's options, then ``sift``'s) and matching into ``database``, on one thread
-    each, with fixed seeds (see :func:`run_sfm`)."""
+    each, with fixed seeds (see :func:`run_sfm`); ``camera_params``: the camera's starting parameters
+    (:func:`prior_camera_params`; empty: COLMAP's guess)."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
+    reader.camera_params = camera_params
     extraction = pycolmap.FeatureExtractionOptions()
     extraction.max_image_size = 3200
     extraction.num_threads = 1  # image numbers in name order (see run_sfm)

@@ -39,6 +39,7 @@ from seathru_nerfstudio.data.pathtrace.presets import HOLDOUT_EVERY, PRESETS, Pr
 from seathru_nerfstudio.data.pathtrace.render import PathtraceError, Renderer
 from seathru_nerfstudio.data.pathtrace.scene import make_layout
 from seathru_nerfstudio.data.pathtrace.truth import fit_veil_and_backscatter
+from seathru_nerfstudio.data.synthetic.cameras import HORIZONTAL_FOV_DEG
 from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 GENERATOR_VERSION = 2
@@ -83,6 +84,9 @@ class PathtraceConfig:
     sfm_camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE", "OPENCV"] = "SIMPLE_PINHOLE"
     """--poses sfm: the camera model SfM calibrates; SIMPLE_PINHOLE is the renderer's (one focal
     length, no distortion): PINHOLE's two focal lengths came out 10% apart on turbid water."""
+    sfm_focal_prior: bool = False
+    """--poses sfm: SfM starts from the renderer's focal length, as from a calibrated camera's (still refined);
+    off: from 1.2 x the long side, self-calibrated, as for images without EXIF."""
     sfm_points_per_view: int = 300
     """--poses truth: sparse depth points per view."""
     variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = "auto"
@@ -109,7 +113,8 @@ class PathtraceConfig:
     def cache_key(self, renders_only: bool = False) -> str:
         """Hash of the options that determine the folder (``renders_only``: the renders alone,
         without the pose options, so a new pose run reuses them)."""
-        skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_camera_model", "sfm_points_per_view"} if renders_only else set())
+        skip = {"output_dir", "overwrite", "variant"} | ({"poses", "sfm_camera_model", "sfm_focal_prior", "sfm_points_per_view"} if renders_only else set())
+        skip |= set() if self.sfm_focal_prior else {"sfm_focal_prior"}  # off: the key scenes had before it existed
         skip |= {name for name in SUN_OPTIONS if getattr(self, name) is None}  # a scene cached before they existed keeps its key
         options = {k: v for k, v in dataclasses.asdict(self).items() if k not in skip}
         options["spp"] = self.samples_per_pixel()  # the default and its value name the same renders
@@ -200,7 +205,7 @@ def generate(config: PathtraceConfig) -> Path:
         }
         try:
             if config.poses == "sfm":
-                frames, camera, registration = _sfm_frames(build, names, layout.poses, config.sfm_camera_model)
+                frames, camera, registration = _sfm_frames(build, names, layout.poses, config.sfm_camera_model, _prior_focal(config))
             else:
                 frames, camera, registration = _true_frames(build, names, layout.poses, views, config)
             _write_transforms(build, frames, camera, names, held)
@@ -262,15 +267,22 @@ def _render_all(renderer: Renderer, layout, config: PathtraceConfig, build: Path
     return views, seconds
 
 
-def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray, camera_model: str):
+def _prior_focal(config: PathtraceConfig) -> Optional[float]:
+    """The renderer's focal length in pixels (horizontal field of view ``HORIZONTAL_FOV_DEG``) where
+    ``--sfm-focal-prior`` asks SfM to start from it, else None."""
+    return config.width / (2.0 * math.tan(math.radians(HORIZONTAL_FOV_DEG) / 2.0)) if config.sfm_focal_prior else None
+
+
+def _sfm_frames(build: Path, names: List[str], true_poses: np.ndarray, camera_model: str, focal_length_px: Optional[float] = None):
     """Poses and sparse depths from ``seathru-process-data`` on the in-medium images (one shared
-    ``camera_model``, COLMAP name, self-calibrated), aligned to the true camera centres by a similarity."""
+    ``camera_model``, COLMAP name, self-calibrated from ``focal_length_px`` where given), aligned to the
+    true camera centres by a similarity."""
     from seathru_nerfstudio.data.process import ProcessDataError, ProcessSeathruData, process
     from seathru_nerfstudio.data.sfm import SfmError
 
     work = build / "_sfm"
     try:
-        report = process(ProcessSeathruData(data=build / "images", output_dir=work, white_balance="none", camera_model=camera_model))
+        report = process(ProcessSeathruData(data=build / "images", output_dir=work, white_balance="none", camera_model=camera_model, focal_length_px=focal_length_px))
     except (SfmError, ProcessDataError) as error:
         raise PathtraceError(f"structure from motion failed on {build / 'images'}: {error}") from error
     count = len(report.sfm.registered)
