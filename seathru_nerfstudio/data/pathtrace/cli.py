@@ -94,7 +94,7 @@ class PathtraceConfig:
     overwrite: bool = False
     """Replace a folder that holds a different scene."""
     sun_elevation_deg: Optional[float] = None
-    """The sun's elevation, degrees, in (0, 90] (default: the preset's, 60); in water the refracted one, 41.4 or more."""
+    """The sun's elevation, degrees, in (0, 90] (default: the preset's, 60); in water its direction under the surface (41.4 or more)."""
     sun_azimuth_deg: Optional[float] = None
     """The sun's azimuth, degrees from behind the rig towards its right (default: the preset's, 30)."""
 
