@@ -186,12 +186,26 @@ def sin_elevation(directions: Float[Tensor, "*batch 3"], vertical: Float[Tensor,
     return (directions.float() @ vertical.to(directions.device).float()).unsqueeze(-1).clamp(-1.0, 1.0)
 
 
+def level_components(directions: Float[Tensor, "*batch 3"], vertical: Float[Tensor, "3"]) -> Float[Tensor, "*batch 2"]:
+    """The components of unit ``directions`` along two level axes: ``e1`` =
+    :func:`~seathru_nerfstudio.vertical.level_direction` of ``vertical`` and ``e2 = vertical × e1``
+    (each in [-1, 1]; ``up² + h1² + h2² = 1``). They say where a ray looks round the horizon."""
+    from seathru_nerfstudio.vertical import level_direction
+
+    up = vertical.detach().double().cpu()
+    first = level_direction(up)
+    axes = torch.stack([first, torch.linalg.cross(up, first)], dim=1).float().to(directions.device)  # [3, 2]
+    return (directions.float() @ axes).clamp(-1.0, 1.0)
+
+
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
     learned constants (sigmoid and softplus, as the MLP's heads). The densities are the same for
     every ray; the veil is ``c_med`` for every ray except those looking up past a held elevation,
     where it rises linearly (:meth:`set_veil_rise`; no rise until it is set): light falls from
-    above, so open water brightens looking up while the water itself stays one body.
+    above, so open water brightens looking up while the water itself stays one body. Round the
+    horizon it changes linearly with the ray's level components (:meth:`set_veil_across`): a sun
+    to one side lights the water that way more, through the phase function, at every range alike.
 
     Cheaper than :class:`MediumField` and without its freedom to give every ray its own
     water, which on a homogeneous scene lets the medium explain scene content per ray.
@@ -217,6 +231,14 @@ class SceneMedium(nn.Module):
         """The veil's rise over ``c_med`` per unit of ``sin(elevation)`` above :attr:`veil_rise_from` (per channel, >= 0)."""
         self.register_buffer("veil_rise_to", torch.tensor(1.0))
         """Where the rise ends (``sin`` of the elevation): above it the veil stays at its value there."""
+        self.register_buffer("veil_across", torch.zeros(2, 3))
+        """The veil's relative change per unit of each level component (:func:`level_components`), per channel."""
+        self.register_buffer("veil_across_mean", torch.zeros(2))
+        """The level components at which the change is 0 (the open rays' mean)."""
+        self.register_buffer("veil_across_low", torch.zeros(2))
+        """Below this, per level component, the change stays at its value there (the open water seen)."""
+        self.register_buffer("veil_across_high", torch.zeros(2))
+        """Above this, per level component, the change stays at its value there."""
         self.register_buffer("fit_from", torch.zeros(6))
         """The densities before the medium fit and (:attr:`fit_to`) the fit, per scene unit, between which
         :meth:`move_to_fit` moves them (zeros: no fit yet); in checkpoints, so a resumed run moves alike."""
@@ -230,12 +252,31 @@ class SceneMedium(nn.Module):
             self.veil_rise.copy_(rise.clamp_min(0.0))
             self.veil_rise_to.fill_(max(float(end), float(self.veil_rise_from.max())))
 
-    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003
-        """A checkpoint from before the start was per channel holds one start: every channel takes it."""
+    def set_veil_across(
+        self, mean: Float[Tensor, "2"], change: Float[Tensor, "2 3"], low: Float[Tensor, "2"], high: Float[Tensor, "2"]
+    ) -> None:
+        """Hold the veil's factor round the horizon at ``max(0, 1 + Σ_j change_j (clamp(h_j, low_j, high_j) − mean_j))``,
+        ``h`` the ray's :func:`level_components`; ``change``: relative, per unit of ``h``, per channel."""
+        with torch.no_grad():
+            self.veil_across.copy_(torch.as_tensor(change, dtype=torch.float32).reshape(2, 3))
+            self.veil_across_mean.copy_(torch.as_tensor(mean, dtype=torch.float32).reshape(2))
+            self.veil_across_low.copy_(torch.as_tensor(low, dtype=torch.float32).reshape(2))
+            self.veil_across_high.copy_(torch.maximum(torch.as_tensor(high, dtype=torch.float32).reshape(2), self.veil_across_low))
+
+    def _load_from_state_dict(
+        self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
+    ):  # noqa: ANN001
+        """A checkpoint from before the start was per channel holds one start: every channel takes it.
+        One from before the change round the horizon has none: those buffers keep what they hold (a
+        factor of 1 on a new model) and are not reported missing. Nothing is added to ``state_dict``:
+        nerfstudio loads the pipeline's own keys into every module after the model's."""
         key = prefix + "veil_rise_from"
         if key in state_dict and state_dict[key].dim() == 0:
             state_dict[key] = state_dict[key].expand(3).clone()
-        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+        super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
+        for name in ("veil_across", "veil_across_mean", "veil_across_low", "veil_across_high"):
+            if prefix + name in missing_keys:
+                missing_keys.remove(prefix + name)
 
     def set_vertical(self, vertical: Sequence[float] | Tensor) -> None:
         """The scene frame's up (three numbers, normalised here) along which the elevation is measured;
@@ -253,12 +294,21 @@ class SceneMedium(nn.Module):
         above = torch.minimum(up, self.veil_rise_to) - self.veil_rise_from
         return 1.0 + self.veil_rise * above.clamp_min(0.0)
 
+    def across_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
+        """The veil's factor round the horizon (:meth:`set_veil_across`) for rays with these unit
+        directions: 1 at the held mean, linear in the level components within the range held, >= 0."""
+        h = level_components(directions, self.vertical)
+        h = torch.minimum(torch.maximum(h, self.veil_across_low), self.veil_across_high) - self.veil_across_mean
+        return (1.0 + h @ self.veil_across).clamp_min(0.0)
+
     def rendered_veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
-        """:meth:`veil_gain` as :meth:`forward` renders it (capped where ``c_med`` times it reaches 1), no
-        gradient: what :func:`~seathru_nerfstudio.rendering.render_seathru` takes as ``veil_gain``."""
+        """:meth:`veil_gain` as :meth:`forward` renders it (capped where ``c_med`` times it and
+        :meth:`across_gain` reaches 1), no gradient: what
+        :func:`~seathru_nerfstudio.rendering.render_seathru` takes as ``veil_gain``. The factor round
+        the horizon is not in it: it scales the whole path radiance, near and far alike."""
         with torch.no_grad():
-            level = torch.sigmoid(self.rgb_logit.float()).to(directions.device)
-            return torch.minimum(self.veil_gain(directions), 1.0 / level)
+            level = torch.sigmoid(self.rgb_logit.float()).to(directions.device) * self.across_gain(directions)
+            return torch.minimum(self.veil_gain(directions), 1.0 / level.clamp_min(torch.finfo(torch.float32).tiny))
 
     def set_densities(self, densities: Sequence[float] | Tensor, first: int = 0) -> None:
         """Set the densities ``first, first + 1, ...`` (``sigma_attn`` then ``sigma_bs``, per scene
@@ -291,7 +341,9 @@ class SceneMedium(nn.Module):
     def forward(self, directions: Float[Tensor, "*batch 3"]) -> MediumOutputs:
         densities = nn.functional.softplus(self.density_raw.float())
         return MediumOutputs(
-            rgb=(torch.sigmoid(self.rgb_logit.float()).to(directions.device) * self.veil_gain(directions)).clamp(max=1.0),
+            rgb=(
+                torch.sigmoid(self.rgb_logit.float()).to(directions.device) * self.veil_gain(directions) * self.across_gain(directions)
+            ).clamp(max=1.0),
             sigma_attn=_expand(densities[:3], directions),
             sigma_bs=_expand(densities[3:], directions),
         )

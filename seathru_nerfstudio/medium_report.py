@@ -27,6 +27,11 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   ``B_inf`` itself is the veil looking down. The surfaces are seen through the backscatter rate
   ``B_inf beta_B`` in every direction: the rise is the far water's, higher up
   (:func:`~seathru_nerfstudio.rendering.depth_lit_backscatter_density`).
+* ``B_inf_across`` (scene medium, where the open water was read to change round the horizon): a
+  ray whose components along the two level axes ``level_axes`` are ``h`` sees the veil times
+  ``max(0, 1 + Σ_j change_j (clamp(h_j, low_j, high_j) - mean_j))`` (``change``: one row per axis,
+  per channel), at every range alike. ``B_inf`` and ``B_inf_rise`` are at the open water's mean
+  heading (``h = mean``), where that factor is 1.
 * ``medium_scope ray`` (the medium is an MLP of the ray direction): ``directions``, a table of
   the medium over a grid of view directions in the scene frame, elevations measured along
   ``vertical`` as above; the top-level values are then its mean over the training cameras' optical axes
@@ -161,6 +166,23 @@ def _veil_rise(model: Any) -> Optional[Dict[str, Any]]:
     }
 
 
+def _veil_across(model: Any) -> Optional[Dict[str, Any]]:
+    """The scene medium's change of the veil round the horizon (module docstring), or ``None`` where it has none."""
+    field = getattr(model, "medium_field", None)
+    change = getattr(field, "veil_across", None)
+    if change is None or not bool((change != 0).any()):
+        return None
+    vertical = field.vertical.detach().double().cpu()
+    first = level_direction(vertical)
+    return {
+        "level_axes": [_numbers(first), _numbers(torch.linalg.cross(vertical, first))],
+        "mean": _numbers(field.veil_across_mean.detach().double().cpu()),
+        "change": [_numbers(row) for row in change.detach().double().cpu()],
+        "low": _numbers(field.veil_across_low.detach().double().cpu()),
+        "high": _numbers(field.veil_across_high.detach().double().cpu()),
+    }
+
+
 def medium_report(
     model: Any,
     unit: str = UNKNOWN_UNIT,
@@ -193,7 +215,12 @@ def medium_report(
             for i in range(grid.shape[0])
         ]
     else:
-        values = {key: value[0] for key, value in _per_world(model, torch.tensor([[0.0, 0.0, -1.0]])).items()}
+        nadir = torch.tensor([[0.0, 0.0, -1.0]])
+        values = {key: value[0] for key, value in _per_world(model, nadir).items()}
+        if hasattr(getattr(model, "medium_field", None), "across_gain"):  # at the mean heading: without the factor
+            with torch.no_grad():
+                factor = model.medium_field.across_gain(nadir.to(model.device))[0].double().cpu()
+            values["B_inf"] = torch.where(factor > 0, values["B_inf"] / factor.clamp_min(1e-12), values["B_inf"])
     report["beta_D"] = _numbers(values["beta_D"])
     report["beta_B"] = _numbers(values["beta_B"])
     report["B_inf"] = _numbers(values["B_inf"])
@@ -202,6 +229,9 @@ def medium_report(
     rise = _veil_rise(model) if scope == "scene" else None
     if rise is not None:
         report["B_inf_rise"] = rise
+    across = _veil_across(model) if scope == "scene" else None
+    if across is not None:
+        report["B_inf_across"] = across
     report["summary"] = summary_line(report)
     return report
 

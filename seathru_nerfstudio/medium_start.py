@@ -12,7 +12,13 @@ veil of rays looking up rises along the least-squares line of the colour over ``
 open rays above the level plane, from where that line passes the held mean (held too; never falls:
 :meth:`OpenWaterColour.rise`, :meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_rise`).
 Path-traced coastal water, seed 7: 32.11 dB in the medium against 30.37 with one constant veil
-(docs/history.md, 2026-11-28 (eba0fe7)).
+(docs/history.md, 2026-11-28 (eba0fe7)). Round the horizon the veil changes by the slopes of the
+least-squares plane of the same rays' colour over ``(sin(elevation), h1, h2)``, ``h`` the ray's level
+components (:meth:`OpenWaterColour.across`,
+:meth:`~seathru_nerfstudio.medium_field.SceneMedium.set_veil_across`): under a sun 45° high and 100°
+round from behind the rig, the open water is 12–30% brighter per unit of ``h1`` towards it, and the
+held-out image in the medium rose from 31.88 to 32.31 dB (docs/history.md, 2026-12-06 (the veil round
+the horizon)).
 A rise fitted to all the open rays, unlike a maximum over groups of them, is not moved by one group
 that holds object colour (the 48×36 water check's open water filled under the maximum). Learned on
 after entry instead, from the rays the object field leaves open, the veil climbs as that field fills
@@ -88,6 +94,9 @@ LEAST_CLEAREST = 0.8
 """The clearest rays are taken to let through at least this much: where none does (no open water in
 view), only rays above ``OPEN_SHARE × LEAST_CLEAREST`` count, and those are open."""
 
+FEATURES = 4
+"""The open water's colour is read over ``(1, up, h1, h2)``: a plane in the ray direction (:meth:`OpenWaterColour.across`)."""
+
 MIN_OPEN_FRACTION = 0.01
 """Fewer open rays than this share of those seen, and the veil learned in the first stage stays."""
 
@@ -123,47 +132,87 @@ class OpenWaterColour(torch.nn.Module):
         self.total = torch.zeros(3, dtype=torch.float64)
         self.total_up_colour = torch.zeros(3, dtype=torch.float64)
         self.total_up = torch.zeros(2, dtype=torch.float64)  # sums of up and up^2
-        self.above_level = torch.zeros(9, dtype=torch.float64)
-        """The same sums over the open rays above the level plane (``up > 0``): count, colour (3), up times
-        colour (3), up, up^2."""
+        self.above_gram = torch.zeros(FEATURES, FEATURES, dtype=torch.float64)
+        """Over the open rays above the level plane (``up > 0``): ``Σ f fᵀ`` with ``f = (1, up, h1, h2)``, ``h``
+        the ray's :func:`~seathru_nerfstudio.medium_field.level_components` (``[0, 0]`` is their count)."""
+        self.above_colour = torch.zeros(FEATURES, 3, dtype=torch.float64)
+        """``Σ f colourᵀ`` over the same rays."""
+        self.level_extent = torch.full((4,), -2.0, dtype=torch.float64)
+        """The largest ``h1``, ``h2``, ``-h1``, ``-h2`` of the same rays (-2: none seen)."""
         self.highest_up = -1.0
         self.open_rays = 0
         self.rays = 0
 
-    def add(self, colours: Float[Tensor, "N 3"], open_share: Float[Tensor, "N 1"], up: Float[Tensor, "N 1"]) -> None:
+    def add(
+        self,
+        colours: Float[Tensor, "N 3"],
+        open_share: Float[Tensor, "N 1"],
+        up: Float[Tensor, "N 1"],
+        level: Optional[Float[Tensor, "N 2"]] = None,
+    ) -> None:
         """Count a batch: ``colours`` (linear RGB), ``open_share`` the geometry's transmittance past
-        the last sample, ``up`` the ``sin`` of the rays' elevations."""
+        the last sample, ``up`` the ``sin`` of the rays' elevations, ``level`` their level components
+        (``None``: all rays look one way round the horizon, and no change across it is read)."""
         is_open = is_open_water(open_share.detach()[..., 0])
         colour = colours.detach()[is_open].double().cpu()
         up_open = up.detach()[is_open].double().clamp(-1.0, 1.0).cpu()
+        level_open = (
+            torch.zeros(up_open.shape[0], 2, dtype=torch.float64)
+            if level is None
+            else level.detach()[is_open].double().clamp(-1.0, 1.0).cpu()
+        )
         self.total += colour.sum(dim=0)
         self.total_up_colour += (up_open * colour).sum(dim=0)
         self.total_up += torch.stack([up_open.sum(), (up_open**2).sum()])
         above = up_open[:, 0] > 0
-        colour_above, up_above = colour[above], up_open[above]
-        self.above_level += torch.cat([
-            torch.tensor([float(above.sum())], dtype=torch.float64), colour_above.sum(dim=0),
-            (up_above * colour_above).sum(dim=0), torch.stack([up_above.sum(), (up_above**2).sum()]),
-        ])
+        features = torch.cat([torch.ones_like(up_open), up_open, level_open], dim=1)[above]
+        self.above_gram += features.T @ features
+        self.above_colour += features.T @ colour[above]
+        if bool(above.any()):
+            extent = torch.cat([level_open[above], -level_open[above]], dim=1).amax(dim=0)
+            self.level_extent = torch.maximum(self.level_extent, extent)
         if up_open.numel():
             self.highest_up = max(self.highest_up, float(up_open.max()))
         self.open_rays += int(colour.shape[0])
         self.rays += int(is_open.numel())
 
-    def get_extra_state(self) -> Float[Tensor, "20"]:
-        """The sums packed in one float64 tensor (every count below 2**53 is exact), so that code
-        that treats a state dict's values as tensors keeps working."""
-        counts = torch.tensor([self.highest_up, self.open_rays, self.rays], dtype=torch.float64)
-        return torch.cat([self.total, self.total_up_colour, self.total_up, counts, self.above_level])
+    def _summed(self) -> Tensor:
+        """The sums that add up over batches and processes, packed: 8 + 16 + 12 numbers."""
+        return torch.cat([self.total, self.total_up_colour, self.total_up, self.above_gram.reshape(-1), self.above_colour.reshape(-1)])
 
-    def set_extra_state(self, state: Float[Tensor, "20"]) -> None:
-        """The sums of :meth:`get_extra_state`; a checkpoint from before the sums above the level (11 numbers) has none of those."""
+    def _unpack_summed(self, packed: Tensor) -> None:
+        self.total, self.total_up_colour, self.total_up = packed[:3], packed[3:6], packed[6:8]
+        self.above_gram = packed[8:24].reshape(FEATURES, FEATURES).clone()
+        self.above_colour = packed[24:36].reshape(FEATURES, 3).clone()
+
+    def get_extra_state(self) -> Float[Tensor, "43"]:
+        """The sums packed in one float64 tensor (every count below 2**53 is exact), so that code
+        that treats a state dict's values as tensors keeps working: the 8 sums of all open rays, the
+        highest ``up`` and the two counts, then the sums above the level (28) and their extent (4)."""
+        counts = torch.tensor([self.highest_up, self.open_rays, self.rays], dtype=torch.float64)
+        return torch.cat([self._summed()[:8], counts, self._summed()[8:], self.level_extent])
+
+    def set_extra_state(self, state: Float[Tensor, "43"]) -> None:
+        """The sums of :meth:`get_extra_state`. A checkpoint from before the sums above the level (11
+        numbers) has none of those; one from before the level components (20) has the count, colour,
+        ``up`` and ``up²`` sums above the level and no change round the horizon."""
         if torch.distributed.is_available() and torch.distributed.is_initialized() and torch.distributed.get_rank() != 0:
             return  # the checkpoint holds the first process's sums: the pooled mean counts them once
         packed = state.detach().double().cpu().clone()
-        self.total, self.total_up_colour, self.total_up = packed[:3], packed[3:6], packed[6:8]
         self.highest_up, self.open_rays, self.rays = float(packed[8]), int(packed[9]), int(packed[10])
-        self.above_level = packed[11:20] if packed.numel() >= 20 else torch.zeros(9, dtype=torch.float64)
+        summed = torch.zeros(36, dtype=torch.float64)
+        summed[:8] = packed[:8]
+        self.level_extent = torch.full((4,), -2.0, dtype=torch.float64)
+        if packed.numel() >= 43:
+            summed[8:] = packed[11:39]
+            self.level_extent = packed[39:43].clone()
+        elif packed.numel() >= 20:  # count, colour (3), up colour (3), up, up^2
+            above = packed[11:20]
+            gram, colour = torch.zeros(FEATURES, FEATURES, dtype=torch.float64), torch.zeros(FEATURES, 3, dtype=torch.float64)
+            gram[0, 0], gram[0, 1], gram[1, 0], gram[1, 1] = above[0], above[7], above[7], above[8]
+            colour[0], colour[1] = above[1:4], above[4:7]
+            summed[8:24], summed[24:36] = gram.reshape(-1), colour.reshape(-1)
+        self._unpack_summed(summed)
 
     def pooled(self, device: torch.device | str = "cpu") -> "OpenWaterColour":
         """These sums over every process of a distributed run (``self`` where there is none), so that
@@ -171,16 +220,16 @@ class OpenWaterColour(torch.nn.Module):
         if not (torch.distributed.is_available() and torch.distributed.is_initialized()):
             return self
         counts = torch.tensor([self.open_rays, self.rays], dtype=torch.float64)
-        packed = torch.cat([self.total, self.total_up_colour, self.total_up, counts, self.above_level]).to(device)
+        packed = torch.cat([self._summed(), counts]).to(device)
         torch.distributed.all_reduce(packed)
         packed = packed.cpu()
-        highest = torch.tensor([self.highest_up], dtype=torch.float64, device=device)
-        torch.distributed.all_reduce(highest, op=torch.distributed.ReduceOp.MAX)
+        largest = torch.cat([torch.tensor([self.highest_up], dtype=torch.float64), self.level_extent]).to(device)
+        torch.distributed.all_reduce(largest, op=torch.distributed.ReduceOp.MAX)
+        largest = largest.cpu()
         pooled = OpenWaterColour()
-        pooled.highest_up = float(highest[0])
-        pooled.total, pooled.total_up_colour, pooled.total_up = packed[:3], packed[3:6], packed[6:8]
-        pooled.open_rays, pooled.rays = int(packed[8]), int(packed[9])
-        pooled.above_level = packed[10:19]
+        pooled.highest_up, pooled.level_extent = float(largest[0]), largest[1:].clone()
+        pooled._unpack_summed(packed[:36])
+        pooled.open_rays, pooled.rays = int(packed[36]), int(packed[37])
         return pooled
 
     def mean(self) -> Optional[Float[Tensor, "3"]]:
@@ -194,15 +243,35 @@ class OpenWaterColour(torch.nn.Module):
         least-squares line ``colour = mean colour + slope (up − mean up)``, per channel. ``None`` where
         fewer than :data:`MIN_OPEN_FRACTION` of the open rays look up, or their ``up`` spreads by under
         1e-4 (standard deviation; the slope's denominator is its square)."""
-        count = float(self.above_level[0])
+        count = float(self.above_gram[0, 0])
         if count <= 0 or count < MIN_OPEN_FRACTION * self.open_rays:
             return None
-        up_above = float(self.above_level[7]) / count
-        spread = float(self.above_level[8]) / count - up_above**2
+        up_above = float(self.above_gram[0, 1]) / count
+        spread = float(self.above_gram[1, 1]) / count - up_above**2
         if spread < 1e-8:
             return None
-        colour_above = self.above_level[1:4] / count
-        return up_above, colour_above, (self.above_level[4:7] / count - up_above * colour_above) / spread
+        colour_above = self.above_colour[0] / count
+        return up_above, colour_above, (self.above_colour[1] / count - up_above * colour_above) / spread
+
+    def across(self) -> Optional[Tuple[Float[Tensor, "2"], Float[Tensor, "2 3"], Float[Tensor, "2"], Float[Tensor, "2"]]]:
+        """``(mean h, slope, lowest h, highest h)`` of the open water's colour round the horizon: the
+        least-squares plane ``colour = a + s up + slope · h`` over the open rays above the level
+        (those :meth:`line_above_level` reads, with their elevation as a covariate, so a rig that looks
+        up more on one side does not read the rise as a change round the horizon), ``slope`` per unit of
+        each level component ``h`` (rows) and channel; the mean and extent of their ``h``. ``None``
+        where :meth:`line_above_level` is, or their ``h`` spreads by under 1e-4 (standard deviation)
+        along some direction once ``up`` is accounted for."""
+        if self.line_above_level() is None:
+            return None
+        count = float(self.above_gram[0, 0])
+        mean = self.above_gram[0] / count
+        covariance = self.above_gram[1:, 1:] / count - torch.outer(mean[1:], mean[1:])  # of (up, h1, h2)
+        level_given_up = covariance[1:, 1:] - torch.outer(covariance[1:, 0], covariance[0, 1:]) / covariance[0, 0]
+        if float(torch.linalg.eigvalsh(level_given_up).min()) < 1e-8:
+            return None
+        colour_covariance = self.above_colour[1:] / count - torch.outer(mean[1:], self.above_colour[0] / count)
+        coefficients = torch.linalg.solve(covariance, colour_covariance)  # [3 (up, h1, h2), 3 channels]
+        return mean[2:].clone(), coefficients[1:].clone(), -self.level_extent[2:].clone(), self.level_extent[:2].clone()
 
     def rise(self) -> Optional[Tuple[Float[Tensor, "3"], Float[Tensor, "3"], float]]:
         """``(start, slope, highest up)``, or ``None`` where :meth:`mean` is: the veil rises from ``start``
@@ -323,10 +392,14 @@ def apply_density_caps(model: Any, step: int, optimizers: Any = None) -> None:
             model.medium_field.rgb_logit.copy_(torch.logit(open_water).to(model.medium_field.rgb_logit))
         gain = rise[1].clamp_min(0.0) / open_water  # brighter looking up only: light falls from above
         model.medium_field.set_veil_rise(rise[0], gain.float(), rise[2])  # not beyond the open water seen
+        across = read.across()
+        if across is not None:
+            model.medium_field.set_veil_across(across[0], across[1] / open_water, across[2], across[3])
         show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+        change = "" if across is None else f", changing round the horizon by {show((across[1] / open_water).reshape(-1))} per unit"
         CONSOLE.print(
             f"[bold]seathru step {step}: B_inf {show(learned)} -> {show(open_water)}, the colour of "
-            f"{read.open_rays} open rays, rising by {show(gain)} per unit of sin(elevation) above {show(rise[0])}; held from here"
+            f"{read.open_rays} open rays, rising by {show(gain)} per unit of sin(elevation) above {show(rise[0])}{change}; held from here"
         )
     table = (model.kwargs.get("metadata") or {}).get(SFM_OBSERVATIONS_KEY)
     if table is None or table.num_observations == 0:

@@ -37,7 +37,7 @@ from seathru_nerfstudio.losses import (
 )
 from seathru_nerfstudio.medium_choice import UNDECIDED, AutoMediumChoice
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumField, MediumOutputs, SceneMedium, blend_media, clear_medium
-from seathru_nerfstudio.medium_field import sin_elevation, tie
+from seathru_nerfstudio.medium_field import level_components, sin_elevation, tie
 from seathru_nerfstudio.medium_start import OpenWaterColour, apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY, VERTICAL_KEY
@@ -327,6 +327,7 @@ class SeathruModel(NerfactoModel):
             outputs["ray_samples_list"] = ray_samples_list
             outputs["transmittance"] = render.transmittance if geometry is None else geometry[1]
             outputs["direction_up"] = sin_elevation(ray_bundle.directions, self.vertical)
+            outputs["direction_level"] = level_components(ray_bundle.directions, self.vertical)
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
         else:  # no loss reads them
@@ -367,7 +368,7 @@ class SeathruModel(NerfactoModel):
         no_geometry_yet = self.object_frozen and "depth_image" not in batch and research.depth_source == "sfm"
         if self.training and self.object_frozen and not no_geometry_yet and self.phases.reads_open_water:
             past_last = outputs["transmittance"][..., -1, :] - outputs["weights_list"][-1][..., -1, :]  # T past the last sample
-            self.open_water_colour.add(image, past_last, outputs["direction_up"])
+            self.open_water_colour.add(image, past_last, outputs["direction_up"], outputs["direction_level"])
         prior_weight = self.phases.binary_prior_weight
         if self.training and prior_weight > 0 and not self.clear_air and not no_geometry_yet:
             loss_dict["binary_prior_loss"] = prior_weight * binary_transmittance_loss(

@@ -186,14 +186,16 @@ def _read_open_water(local_rank: int, dist_url: str, out: str) -> None:
         read = OpenWaterColour()
         colour = torch.tensor([0.1, 0.2, 0.3]) * (local_rank + 1)  # each rank sees its own water
         rays = (10, 30)[local_rank]
-        read.add(colour.expand(rays, 3), torch.ones(rays, 1), torch.full((rays, 1), (-0.1, 0.2)[local_rank]))
+        level = torch.stack([torch.linspace(-0.5, 0.4, rays), torch.full((rays,), 0.9)], dim=1) * (local_rank + 1) / 2
+        read.add(colour.expand(rays, 3), torch.ones(rays, 1), torch.full((rays, 1), (-0.1, 0.2)[local_rank]), level)
         alone = read.mean()
         pooled = read.pooled("cpu")
         restored = OpenWaterColour()
         restored.set_extra_state(read.get_extra_state())  # each rank loads the checkpoint rank 0 wrote
         result = {"alone": alone, "pooled": pooled.mean(), "rise": pooled.rise(), "counts": (pooled.open_rays, pooled.rays)}
         result["restored"] = (restored.open_rays, restored.rays)
-        result["above_level_rays"] = float(pooled.above_level[0])
+        result["above_level_rays"] = float(pooled.above_gram[0, 0])
+        result["level_extent"] = pooled.level_extent
         torch.save(result, Path(out) / f"read{local_rank}.pt")
     finally:
         dist.destroy_process_group()
@@ -218,6 +220,10 @@ def test_every_rank_reads_the_same_open_water_from_all_ranks_rays(tmp_path):
     assert torch.all(slope0 > 0)  # the brighter water is the higher
     assert r0["restored"] == (10, 10) and r1["restored"] == (0, 0)
     assert r0["above_level_rays"] == r1["above_level_rays"] == 30  # rank 1's rays, above the level, counted on both
+    # the extent round the horizon is the largest over the ranks (rank 0's rays, below the level, count for none)
+    expected_extent = torch.tensor([0.4, 0.9, 0.5, -0.9], dtype=torch.float64)
+    torch.testing.assert_close(r0["level_extent"], expected_extent)
+    assert torch.equal(r0["level_extent"], r1["level_extent"])
 
 
 def _guard_on_rank(local_rank: int, dist_url: str, out: str) -> None:

@@ -49,6 +49,16 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     tilted = medium_report.medium_report(water)["B_inf_rise"]
     assert tilted["vertical"] == pytest.approx([0.0, 0.6, 0.8]) and tilted["B_inf_highest"] == pytest.approx(expected.tolist(), rel=1e-5)
     assert "B_inf looking up to" in rise["summary"]
+    assert "B_inf_across" not in rise  # no change round the horizon set
+    level = torch.tensor(rise["B_inf"])
+    water.medium_field.set_vertical([0.0, 0.0, 1.0])
+    change = torch.tensor([[0.4, 0.0, -0.2], [0.1, 0.2, 0.3]])
+    water.medium_field.set_veil_across(torch.tensor([0.2, 0.9]), change, torch.tensor([-0.5, 0.7]), torch.tensor([0.5, 1.0]))
+    across = medium_report.medium_report(water)
+    assert across["B_inf"] == pytest.approx(level.tolist(), rel=1e-5)  # at the mean heading: the factor is 1
+    torch.testing.assert_close(torch.tensor(across["B_inf_across"]["change"], dtype=torch.float64), change.double())
+    torch.testing.assert_close(torch.tensor(across["B_inf_across"]["level_axes"], dtype=torch.float64), torch.eye(3)[:2].double())
+    assert (across["B_inf_across"]["mean"], across["B_inf_across"]["low"]) == (pytest.approx([0.2, 0.9]), pytest.approx([-0.5, 0.7]))
 
     ray = tiny_model(medium_model="seathru", medium_scope="ray").eval()
     report = medium_report.medium_report(ray, view_directions=torch.tensor([[0.0, 0.0, -1.0]]))

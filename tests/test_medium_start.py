@@ -264,6 +264,35 @@ def test_the_open_water_rise_is_the_line_of_the_open_rays_above_the_level():
     assert downward.line_above_level() is None and level.line_above_level() is None  # no ray looks up
 
 
+def test_the_open_waters_change_round_the_horizon_is_read_with_the_elevation_as_a_covariate():
+    """Open rays above the level whose colour is a plane in ``(up, h1, h2)``, the elevation rising with
+    ``h1`` (a rig that looks up more on one side): :meth:`OpenWaterColour.across` gives the plane's
+    slopes along ``h`` exactly (the line over ``up`` alone would not separate them), the rays' mean
+    ``h`` and their extent; rays below the level count for nothing. All rays looking one way round the
+    horizon give no change."""
+    generator = torch.Generator().manual_seed(3)
+    azimuth = torch.rand(400, generator=generator) * 1.2 - 0.6
+    up = (0.05 + 0.2 * torch.rand(400, generator=generator) + 0.1 * azimuth).clamp(0.01, 0.6)
+    level = torch.stack([torch.sin(azimuth), torch.cos(azimuth)], dim=1) * torch.sqrt(1 - up**2)[:, None]
+    slope_up = torch.tensor([0.1, 0.3, 0.5])
+    slope_level = torch.tensor([[0.02, 0.05, 0.08], [-0.01, 0.0, 0.03]])
+    colours = torch.tensor([0.05, 0.2, 0.4]) + up[:, None] * slope_up + level @ slope_level
+    up = up[:, None]
+    estimate = OpenWaterColour()
+    estimate.add(colours[:100], torch.ones(100, 1), up[:100], level[:100])
+    estimate.add(colours[100:], torch.ones(300, 1), up[100:], level[100:])
+    estimate.add(torch.ones(50, 3), torch.ones(50, 1), torch.full((50, 1), -0.2), torch.full((50, 2), 0.99))
+    mean, slope, low, high = estimate.across()
+    torch.testing.assert_close(slope, slope_level.double(), rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(mean, level.double().mean(dim=0), rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(low, level.double().amin(dim=0), rtol=0, atol=1e-6)
+    torch.testing.assert_close(high, level.double().amax(dim=0), rtol=0, atol=1e-6)
+
+    one_way = OpenWaterColour()
+    one_way.add(colours, torch.ones(400, 1), up, torch.tensor([[0.0, 1.0]]).expand(400, 2))
+    assert one_way.line_above_level() is not None and one_way.across() is None
+
+
 def test_the_open_water_sums_are_in_the_checkpoint_so_a_resumed_first_stage_reads_the_same_veil(tmp_path):
     """A model whose first stage was killed after some batches and loaded from its checkpoint
     (``torch.save``, then the safe loader ns-train uses) holds the same sums; the batches it then
@@ -297,4 +326,15 @@ def test_the_open_water_sums_are_in_the_checkpoint_so_a_resumed_first_stage_read
     before_above = state["open_water_colour._extra_state"][:11]  # a checkpoint from before the sums above the level
     fresh.open_water_colour.set_extra_state(before_above)
     assert fresh.open_water_colour.open_rays == killed.open_water_colour.open_rays
-    assert torch.equal(fresh.open_water_colour.above_level, torch.zeros(9, dtype=torch.float64))
+    assert not fresh.open_water_colour.above_gram.any() and not fresh.open_water_colour.above_colour.any()
+    # A checkpoint from before the level components: its 9 sums above the level (count, colour, up colour,
+    # up, up^2) give the same line, and no change round the horizon.
+    read = killed.open_water_colour
+    gram, colour = read.above_gram, read.above_colour
+    before_level = torch.cat([
+        state["open_water_colour._extra_state"][:11], gram[0, :1], colour[0], colour[1], gram[0, 1:2], gram[1, 1:2],
+    ])
+    fresh.open_water_colour.set_extra_state(before_level)
+    for got, want in zip(fresh.open_water_colour.line_above_level(), read.line_above_level()):
+        torch.testing.assert_close(torch.as_tensor(got), torch.as_tensor(want), rtol=1e-12, atol=0.0)
+    assert fresh.open_water_colour.across() is None

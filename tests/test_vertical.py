@@ -103,6 +103,52 @@ def test_the_veil_rises_along_the_scene_vertical():
     assert "vertical" not in medium.state_dict()  # from the data at every start
 
 
+def test_the_veil_changes_round_the_horizon_within_the_range_held_and_scales_the_whole_path_radiance():
+    """Vertical ``+z``: the level components are ``x`` (``e1``) and ``y`` (``z × x``). The factor is 1 at
+    the held mean, linear in the components inside the held range, held at its value there outside
+    it, never below 0; the veil is ``c_med`` times it. It is not in ``rendered_veil_gain`` (the
+    backscatter density is not divided by it: the path radiance scales near and far alike)."""
+    medium = SceneMedium(init_rgb=[0.1, 0.2, 0.4])
+    medium.set_vertical([0.0, 0.0, 1.0])
+    change = torch.tensor([[0.5, 0.2, -0.1], [0.0, 0.3, 0.0]])
+    medium.set_veil_across(torch.tensor([0.1, 0.8]), change, torch.tensor([-0.5, 0.6]), torch.tensor([0.5, 1.0]))
+    directions = torch.nn.functional.normalize(torch.tensor([
+        [0.1, 0.8, 0.0], [0.3, 0.9, 0.1], [-0.9, 0.3, 0.0], [0.0, 0.0, -1.0], [0.9, -0.2, 0.1],
+    ]), dim=-1)
+    h = torch.stack([directions[:, 0].clamp(-0.5, 0.5), directions[:, 1].clamp(0.6, 1.0)], dim=1)
+    expected = 1.0 + (h - torch.tensor([0.1, 0.8])) @ change
+    torch.testing.assert_close(medium.across_gain(directions), expected.clamp_min(0.0), rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(medium(directions).rgb, torch.tensor([0.1, 0.2, 0.4]) * expected, rtol=1e-6, atol=1e-6)
+    torch.testing.assert_close(medium.rendered_veil_gain(directions), torch.ones(5, 3))
+    assert torch.equal(medium(directions).sigma_bs, SceneMedium(init_rgb=[0.1, 0.2, 0.4])(directions).sigma_bs)
+
+    medium.set_veil_across(torch.zeros(2), torch.full((2, 3), -1e30), torch.full((2,), -1.0), torch.ones(2))
+    for dtype in (torch.float16, torch.bfloat16):
+        veil = medium(directions.to(dtype)).rgb
+        assert bool(torch.isfinite(veil).all()) and bool((veil >= 0).all())
+        assert bool(torch.isfinite(medium.rendered_veil_gain(directions.to(dtype))).all())
+
+
+def test_a_checkpoint_from_before_the_change_round_the_horizon_loads_without_one_and_a_second_pass_keeps_it():
+    """A checkpoint without the change round the horizon loads strictly into a new medium, whose factor
+    is 1. nerfstudio's pipeline loads the model's keys, then its own (none of the model's) into every
+    module with ``strict=False``: that second pass keeps the change the first one loaded."""
+    older = SceneMedium(init_rgb=0.2)
+    state = {k: v for k, v in older.state_dict().items() if not k.startswith("veil_across")}
+    loaded = SceneMedium()
+    loaded.load_state_dict(state)
+    directions = torch.nn.functional.normalize(torch.randn(20, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    torch.testing.assert_close(loaded.across_gain(directions), torch.ones(20, 3))
+    torch.testing.assert_close(loaded(directions).rgb, older(directions).rgb)
+
+    trained = SceneMedium(init_rgb=0.2)
+    trained.set_veil_across(torch.tensor([0.0, 0.9]), torch.full((2, 3), 0.3), -torch.ones(2), torch.ones(2))
+    pipeline = torch.nn.ModuleDict({"model": SceneMedium()})
+    pipeline["model"].load_state_dict(trained.state_dict(), strict=True)
+    assert pipeline.load_state_dict({}, strict=False).missing_keys  # the second pass: none of the model's keys
+    torch.testing.assert_close(pipeline["model"].across_gain(directions), trained.across_gain(directions))
+
+
 @pytest.mark.parametrize("vertical", [[0.0, 0.0, 0.0], [float("nan"), 0.0, 1.0], [float("inf"), 0.0, 0.0]])
 def test_a_vertical_without_a_direction_is_refused(vertical):
     medium = SceneMedium()
