@@ -186,16 +186,22 @@ def sin_elevation(directions: Float[Tensor, "*batch 3"], vertical: Float[Tensor,
     return (directions.float() @ vertical.to(directions.device).float()).unsqueeze(-1).clamp(-1.0, 1.0)
 
 
-def level_components(directions: Float[Tensor, "*batch 3"], vertical: Float[Tensor, "3"]) -> Float[Tensor, "*batch 2"]:
-    """The components of unit ``directions`` along two level axes: ``e1`` =
-    :func:`~seathru_nerfstudio.vertical.level_direction` of ``vertical`` and ``e2 = vertical × e1``
-    (each in [-1, 1]; ``up² + h1² + h2² = 1``). They say where a ray looks round the horizon."""
+def level_axes(vertical: Float[Tensor, "3"]) -> Float[Tensor, "3 2"]:
+    """Two unit level axes as columns: ``e1`` = :func:`~seathru_nerfstudio.vertical.level_direction` of
+    ``vertical`` (normalised here; ``+z`` for a zero vector) and ``e2 = vertical × e1``. Computed once per vertical (it reads the vertical on
+    the CPU), not per batch. float32, on ``vertical``'s device."""
     from seathru_nerfstudio.vertical import level_direction
 
     up = vertical.detach().double().cpu()
+    up = up / up.norm() if float(up.norm()) > 0 else torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
     first = level_direction(up)
-    axes = torch.stack([first, torch.linalg.cross(up, first)], dim=1).float().to(directions.device)  # [3, 2]
-    return (directions.float() @ axes).clamp(-1.0, 1.0)
+    return torch.stack([first, torch.linalg.cross(up, first)], dim=1).float().to(vertical.device)
+
+
+def level_components(directions: Float[Tensor, "*batch 3"], axes: Float[Tensor, "3 2"]) -> Float[Tensor, "*batch 2"]:
+    """The components of unit ``directions`` along the level ``axes`` (:func:`level_axes`), each in
+    [-1, 1] (``up² + h1² + h2² = 1``): where a ray looks round the horizon."""
+    return (directions.float() @ axes.to(directions.device).float()).clamp(-1.0, 1.0)
 
 
 class SceneMedium(nn.Module):
@@ -225,6 +231,8 @@ class SceneMedium(nn.Module):
         self.register_buffer("vertical", torch.tensor([0.0, 0.0, 1.0]), persistent=False)
         """The unit up of the scene frame for the elevation (:func:`~seathru_nerfstudio.vertical.scene_vertical`;
         set from the data at every start, so not in checkpoints)."""
+        self.register_buffer("level_axes", level_axes(self.vertical), persistent=False)
+        """:func:`level_axes` of :attr:`vertical`, set with it."""
         self.register_buffer("veil_rise_from", torch.ones(3))
         """Where the veil starts to rise, per channel: ``sin`` of the elevation (``direction · vertical``)."""
         self.register_buffer("veil_rise", torch.zeros(3))
@@ -286,6 +294,7 @@ class SceneMedium(nn.Module):
             raise ValueError(f"the scene's vertical must be a finite non-zero vector, got {values.tolist()}")
         with torch.no_grad():
             self.vertical.copy_(values / values.norm())
+            self.level_axes.copy_(level_axes(self.vertical))
 
     def veil_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
         """``1 + rise clamp(up - start, 0, end - start)`` for rays with these unit directions, ``up`` their
@@ -297,7 +306,7 @@ class SceneMedium(nn.Module):
     def across_gain(self, directions: Float[Tensor, "*batch 3"]) -> Float[Tensor, "*batch 3"]:
         """The veil's factor round the horizon (:meth:`set_veil_across`) for rays with these unit
         directions: 1 at the held mean, linear in the level components within the range held, >= 0."""
-        h = level_components(directions, self.vertical)
+        h = level_components(directions, self.level_axes)
         h = torch.minimum(torch.maximum(h, self.veil_across_low), self.veil_across_high) - self.veil_across_mean
         return (1.0 + h @ self.veil_across).clamp_min(0.0)
 

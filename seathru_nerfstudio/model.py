@@ -37,7 +37,7 @@ from seathru_nerfstudio.losses import (
 )
 from seathru_nerfstudio.medium_choice import UNDECIDED, AutoMediumChoice
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumField, MediumOutputs, SceneMedium, blend_media, clear_medium
-from seathru_nerfstudio.medium_field import level_components, sin_elevation, tie
+from seathru_nerfstudio.medium_field import level_axes, level_components, sin_elevation, tie
 from seathru_nerfstudio.medium_start import OpenWaterColour, apply_density_caps
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY, VERTICAL_KEY
@@ -75,6 +75,7 @@ class SeathruModel(NerfactoModel):
         self.fit_oracle = read_true_medium(research.medium_fit_oracle) if research.medium_fit_oracle else None
         self.register_buffer("vertical", torch.tensor(metadata.get(VERTICAL_KEY, (0.0, 0.0, 1.0))).float(), persistent=False)
         """The scene frame's unit up (:func:`~seathru_nerfstudio.vertical.scene_vertical`): elevations are measured along it."""
+        self.register_buffer("level_axes", level_axes(self.vertical), persistent=False)
         self.medium_field = self._build_medium(metadata)
         self.open_water_colour = OpenWaterColour()  # the first stage's open rays: the veil from its end on
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
@@ -327,7 +328,7 @@ class SeathruModel(NerfactoModel):
             outputs["ray_samples_list"] = ray_samples_list
             outputs["transmittance"] = render.transmittance if geometry is None else geometry[1]
             outputs["direction_up"] = sin_elevation(ray_bundle.directions, self.vertical)
-            outputs["direction_level"] = level_components(ray_bundle.directions, self.vertical)
+            outputs["direction_level"] = level_components(ray_bundle.directions, self.level_axes)
             if "directions_norm" in (ray_bundle.metadata or {}):
                 outputs["directions_norm"] = ray_bundle.metadata["directions_norm"]
         else:  # no loss reads them

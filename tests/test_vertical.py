@@ -103,6 +103,22 @@ def test_the_veil_rises_along_the_scene_vertical():
     assert "vertical" not in medium.state_dict()  # from the data at every start
 
 
+@pytest.mark.parametrize("vertical", [[0.0, 0.0, 2.0], [1.0, 0.0, 0.0], [0.6, -0.48, 0.64]])
+def test_the_level_axes_complete_the_vertical_to_an_orthonormal_frame(vertical):
+    """``(e1, e2, vertical)`` is right-handed and orthonormal, so a unit direction's ``sin(elevation)``
+    and its two level components have squares summing to 1."""
+    from seathru_nerfstudio.medium_field import level_axes, level_components
+
+    v = torch.tensor(vertical)
+    axes = level_axes(v)
+    frame = torch.cat([axes, (v / v.norm())[:, None]], dim=1).double()
+    torch.testing.assert_close(frame.T @ frame, torch.eye(3, dtype=torch.float64), atol=1e-6, rtol=0)
+    assert float(torch.linalg.det(frame)) == pytest.approx(1.0, abs=1e-6)
+    directions = torch.nn.functional.normalize(torch.randn(50, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+    squares = level_components(directions, axes).square().sum(-1) + sin_elevation(directions, v / v.norm())[..., 0].square()
+    torch.testing.assert_close(squares, torch.ones(50), atol=1e-5, rtol=0)
+
+
 def test_the_veil_changes_round_the_horizon_within_the_range_held_and_scales_the_whole_path_radiance():
     """Vertical ``+z``: the level components are ``x`` (``e1``) and ``y`` (``z × x``). The factor is 1 at
     the held mean, linear in the components inside the held range, held at its value there outside
