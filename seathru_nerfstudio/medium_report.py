@@ -172,10 +172,8 @@ def _veil_across(model: Any) -> Optional[Dict[str, Any]]:
     change = getattr(field, "veil_across", None)
     if change is None or not bool((change != 0).any()):
         return None
-    vertical = field.vertical.detach().double().cpu()
-    first = level_direction(vertical)
     return {
-        "level_axes": [_numbers(first), _numbers(torch.linalg.cross(vertical, first))],
+        "level_axes": [_numbers(axis) for axis in field.level_axes.detach().double().cpu().T],
         "mean": _numbers(field.veil_across_mean.detach().double().cpu()),
         "change": [_numbers(row) for row in change.detach().double().cpu()],
         "low": _numbers(field.veil_across_low.detach().double().cpu()),

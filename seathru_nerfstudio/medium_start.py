@@ -190,7 +190,8 @@ class OpenWaterColour(torch.nn.Module):
         that treats a state dict's values as tensors keeps working: the 8 sums of all open rays, the
         highest ``up`` and the two counts, then the sums above the level (28) and their extent (4)."""
         counts = torch.tensor([self.highest_up, self.open_rays, self.rays], dtype=torch.float64)
-        return torch.cat([self._summed()[:8], counts, self._summed()[8:], self.level_extent])
+        summed = self._summed()
+        return torch.cat([summed[:8], counts, summed[8:], self.level_extent])
 
     def set_extra_state(self, state: Float[Tensor, "43"]) -> None:
         """The sums of :meth:`get_extra_state`. A checkpoint from before the sums above the level (11
