@@ -20,6 +20,10 @@ it fills the open water with a wall, ``scripts/probe_open_water.py``). It says w
 error comes from surfaces the water hides (where the images barely fix a range) or from ones it
 shows, and whether a wall in the open water stands in front of them.
 
+Last, within and beyond the far bound, the median log ratio by the cosine between the ray and the true
+surface normal (from the range map's gradients, :func:`incidence_cosines`): whether a surface placed
+too near is one the ray grazes (a blurred surface meets a grazing ray early) or one past the SfM's reach.
+
     .venv/bin/python scripts/probe_depth_error.py RUN/config.yml outputs/pathtraced/turbid_s3
 """
 
@@ -35,8 +39,24 @@ import numpy as np
 NUM_BANDS = 5
 FAR_OFF = 0.25
 """An abs-rel above this counts as a pixel placed wrong."""
+INCIDENCE_BINS = ((0.0, 0.15), (0.15, 0.3), (0.3, 0.5), (0.5, 1.01))
+"""Bins of ``|cos|`` between the ray and the surface normal (below 0.15: the ray grazes, under 9°)."""
+MIN_BIN_PIXELS = 20
+"""A bin with fewer pixels is not printed."""
 VISIBLE_TRANSMITTANCE = 0.05
 """A surface counts as shown by the water where at least this share of its light reaches the camera."""
+
+
+def incidence_cosines(camera, true_range: np.ndarray) -> np.ndarray:
+    """``|cos|`` of the angle between each pixel's ray and the true surface normal, ``(H, W)``: the
+    surface points ``range × direction`` (camera at the origin; the range map in world units, the
+    directions unit vectors), the normal the cross product of their image gradients; nan on open water
+    and where a neighbour is open water."""
+    directions = camera.generate_rays(camera_indices=0).directions.numpy().astype(np.float64)
+    points = directions * np.where(np.isfinite(true_range), true_range, np.nan)[..., None]
+    normals = np.cross(np.gradient(points, axis=1), np.gradient(points, axis=0))
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True) + 1e-12
+    return np.abs(np.sum(normals * directions, axis=-1))
 
 
 def object_depths(config: Path, scene: Path) -> Tuple[dict, float]:
@@ -48,9 +68,10 @@ def object_depths(config: Path, scene: Path) -> Tuple[dict, float]:
     pipeline, scale = load_run(config)
     far_plane = pipeline.datamanager.train_dataparser_outputs.metadata.get("far_plane")
     far_bound = float(far_plane) / scale if far_plane is not None else float("nan")
-    columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth")}
-    for _, _, _, true_range, outputs in held_out_renders(pipeline, scene):
+    columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth", "cosine")}
+    for _, _, camera, true_range, outputs in held_out_renders(pipeline, scene):
         objects = np.isfinite(true_range) & (true_range > 0)
+        columns["cosine"].append(incidence_cosines(camera, true_range)[objects])
         depth = outputs["depth"][..., 0].numpy() / scale
         columns["range"].append(true_range[objects])
         columns["depth"].append(depth[objects])
@@ -90,6 +111,11 @@ def main(config: Path, scene: Path) -> None:
                     f"{label}: {mask.mean():.1%} of the pixels, {rel[mask].sum() / rel.sum():.0%} of the sum, abs-rel mean "
                     f"{rel[mask].mean():.3f}, log ratio {np.median(log_ratio[mask]):+.3f}, rendered depth median {np.median(depth[mask]):.2f}"
                 )
+        cosine = samples["cosine"]
+        for label, mask in (("within the bound", ~beyond), ("beyond it", beyond)):
+            bins = [f"{low:.2f}–{high:.2f}: {np.median(log_ratio[band]):+.3f} ({band.sum()})" for low, high in INCIDENCE_BINS
+                    if (band := mask & (cosine >= low) & (cosine < high)).sum() >= MIN_BIN_PIXELS]  # fmt: skip
+            print(f"{label}, median log ratio by |cos| of the ray against the surface normal (pixels): {'; '.join(bins) or '–'}")
     too_near = (rel > FAR_OFF) & (log_ratio < 0)
     if too_near.any():
         open_depth = samples["open_depth"]
