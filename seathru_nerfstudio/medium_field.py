@@ -187,15 +187,14 @@ def sin_elevation(directions: Float[Tensor, "*batch 3"], vertical: Float[Tensor,
 
 
 def level_axes(vertical: Float[Tensor, "3"]) -> Float[Tensor, "3 2"]:
-    """Two unit level axes as columns: ``e1`` = :func:`~seathru_nerfstudio.vertical.level_direction` of
-    ``vertical`` (normalised here; ``+z`` for a zero vector) and ``e2 = vertical × e1``. Computed once per vertical (it reads the vertical on
-    the CPU), not per batch. float32, on ``vertical``'s device."""
-    from seathru_nerfstudio.vertical import level_direction
+    """:func:`~seathru_nerfstudio.vertical.level_frame` of ``vertical`` (normalised here; ``+z`` for a
+    zero vector). Computed once per vertical (it reads the vertical on the CPU), not per batch. float32,
+    on ``vertical``'s device."""
+    from seathru_nerfstudio.vertical import level_frame
 
     up = vertical.detach().double().cpu()
     up = up / up.norm() if float(up.norm()) > 0 else torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
-    first = level_direction(up)
-    return torch.stack([first, torch.linalg.cross(up, first)], dim=1).float().to(vertical.device)
+    return level_frame(up).float().to(vertical.device)
 
 
 def level_components(directions: Float[Tensor, "*batch 3"], axes: Float[Tensor, "3 2"]) -> Float[Tensor, "*batch 2"]:

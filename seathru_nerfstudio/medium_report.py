@@ -55,7 +55,7 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
-from seathru_nerfstudio.vertical import level_direction
+from seathru_nerfstudio.vertical import level_direction, level_frame
 
 REPORT_NAME = "medium.json"
 """The file's name, beside ``config.yml``."""
@@ -87,8 +87,7 @@ def direction_grid(vertical: Optional[Float[Tensor, "3"]] = None) -> Float[Tenso
     scene frame: elevation above the plane level to ``vertical`` (the scene's unit up; default
     ``+z``), azimuth from :func:`~seathru_nerfstudio.vertical.level_direction` towards ``vertical × it``."""
     up = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) if vertical is None else vertical.detach().double().cpu()
-    first = level_direction(up)
-    frame = torch.stack([first, torch.linalg.cross(up, first), up], dim=1)  # columns: the level axes, then up
+    frame = torch.cat([level_frame(up), up[:, None]], dim=1)  # columns: the level axes, then up
     rows = []
     for elevation in ELEVATIONS_DEG:
         for azimuth in AZIMUTHS_DEG if abs(elevation) < 90 else (0,):

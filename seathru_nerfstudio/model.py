@@ -76,6 +76,7 @@ class SeathruModel(NerfactoModel):
         self.register_buffer("vertical", torch.tensor(metadata.get(VERTICAL_KEY, (0.0, 0.0, 1.0))).float(), persistent=False)
         """The scene frame's unit up (:func:`~seathru_nerfstudio.vertical.scene_vertical`): elevations are measured along it."""
         self.register_buffer("level_axes", level_axes(self.vertical), persistent=False)
+        """:func:`~seathru_nerfstudio.medium_field.level_axes` of :attr:`vertical`: where the open rays look round the horizon."""
         self.medium_field = self._build_medium(metadata)
         self.open_water_colour = OpenWaterColour()  # the first stage's open rays: the veil from its end on
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)

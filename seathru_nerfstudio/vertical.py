@@ -60,3 +60,10 @@ def level_direction(vertical: Float[Tensor, "3"]) -> Float[Tensor, "3"]:
     axis[0 if abs(float(vertical[0])) < 0.9 else 1] = 1.0
     level = axis - (axis @ vertical) * vertical
     return level / level.norm()
+
+
+def level_frame(vertical: Float[Tensor, "3"]) -> Float[Tensor, "3 2"]:
+    """Two unit level axes of ``vertical`` (unit) as columns: ``e1`` = :func:`level_direction`,
+    ``e2 = vertical × e1``, so that ``(e1, e2, vertical)`` is right-handed. In ``vertical``'s dtype."""
+    first = level_direction(vertical)
+    return torch.stack([first, torch.linalg.cross(vertical, first)], dim=1)
