@@ -249,9 +249,12 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
         reconstruction = result.reconstruction
         poses = {reconstruction.images[i].name: reconstruction.images[i].cam_from_world().matrix() for i in reconstruction.reg_image_ids()}
         runs.append((result.registered, poses, reconstruction.num_points3D()))
-        # a complete model is checked against another complete start, and the mapper stops there
-        assert complete_starts(result.attempts, len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS
-        assert complete_starts(result.attempts[:-1], len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS - 1
+        # from each camera start, a complete model is checked against another complete start, and the mapper stops there
+        assert result.cameras[0] == "uncalibrated camera" and len(set(result.cameras)) == 2
+        for camera in set(result.cameras):
+            counts = [n for n, c in zip(result.attempts, result.cameras) if c == camera]
+            assert complete_starts(counts, len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS
+            assert complete_starts(counts[:-1], len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS - 1
         assert set(result.descriptors) == {"SIFT"}  # registered fully: no second descriptor pass
         ranks = list(zip(result.attempts, result.observations))
         assert ranks[result.kept] == max(ranks) == (len(result.registered), num_observations(reconstruction))
@@ -266,11 +269,11 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
 
 def test_a_small_registration_is_retried_then_refused_below_the_users_minimum(small_scene, tmp_path) -> None:
     """Two unrelated scenes in one folder: the best model holds at most one of them, so the mapper
-    tries its other settings with each kind of descriptor in turn, and a minimum above that share
+    tries its other settings from each camera start with each kind of descriptor in turn, and a minimum above that share
     fails naming the folder."""
     import shutil
 
-    from seathru_nerfstudio.data.sfm import DESCRIPTOR_PASSES, MAPPER_ATTEMPTS, RETRY_BELOW_FRACTION, SfmError, run_sfm
+    from seathru_nerfstudio.data.sfm import DESCRIPTOR_PASSES, MAPPER_ATTEMPTS, RETRY_BELOW_FRACTION, SfmError, camera_starts, run_sfm
 
     other = generate(SynthConfig(output_dir=tmp_path / "other", preset="fog", seed=11, **SMALL))
     mixed = display_copies(other, tmp_path / "mixed", prefix="other_")
@@ -280,7 +283,10 @@ def test_a_small_registration_is_retried_then_refused_below_the_users_minimum(sm
     result = run_sfm(mixed, tmp_path / "work", camera_model="PINHOLE", min_registered_fraction=0.0, source="capture/")
     assert len(result.registered) <= total - SMALL["num_views"] < RETRY_BELOW_FRACTION * total
     labels = [label for label, _ in DESCRIPTOR_PASSES]
-    assert result.descriptors == [label for label in labels for _ in MAPPER_ATTEMPTS]  # every setting, every descriptor
+    starts = [label for label, _ in camera_starts("PINHOLE", None, mixed / sorted(p.name for p in mixed.iterdir())[0])]
+    # every setting, from every camera start, with every descriptor
+    assert result.descriptors == [label for label in labels for _ in starts for _ in MAPPER_ATTEMPTS]
+    assert result.cameras == [start for _ in labels for start in starts for _ in MAPPER_ATTEMPTS]
     assert len(result.attempts) == len(result.descriptors) == len(result.observations)
     assert len(result.registered) == max(result.attempts)  # and the best model kept
     with pytest.raises(SfmError, match=r"registered only \d+ of the 20 images of capture/ .*--min-registered-fraction 0.6"):
@@ -347,27 +353,32 @@ def test_a_dataset_with_no_sfm_at_all_says_in_one_line_what_is_lost(tmp_path, ca
 
 
 @pytest.mark.parametrize("model, count", [("SIMPLE_PINHOLE", 3), ("PINHOLE", 4), ("SIMPLE_RADIAL", 4), ("OPENCV", 8)])
-def test_a_known_focal_length_is_where_the_camera_starts(small_scene, tmp_path, model, count) -> None:
+def test_the_camera_starts_at_a_known_or_guessed_focal_length_marked_as_a_prior(small_scene, tmp_path, model, count) -> None:
     """``--focal-length-px``: the shared camera enters the database with that focal length, the principal
-    point at the image centre and no distortion, marked as a prior; without it COLMAP guesses 1.2 × the
-    long side and marks none."""
+    point at the image centre and no distortion, marked as a prior, and is the only camera start; without
+    it, the second start is the same at 1.2 × the long side, the first COLMAP's unmarked guess."""
     import pycolmap
 
-    from seathru_nerfstudio.data.sfm import SfmError, _extract_and_match, prior_camera_params
+    from seathru_nerfstudio.data.sfm import GUESSED_FOCAL_PER_LONG_SIDE, SfmError, _extract_and_match, camera_starts, prior_camera_params
 
     names = sorted(p.name for p in small_scene.glob("*.png"))[:3]
     height, width = cv2.imread(str(small_scene / names[0])).shape[:2]
-    for focal, expect_prior in ((123.5, True), (None, False)):
+    for focal, expect_focal in ((123.5, 123.5), (None, GUESSED_FOCAL_PER_LONG_SIDE * max(width, height))):
         params = prior_camera_params(model, focal, small_scene / names[0])
         database = tmp_path / f"{focal}.db"
         _extract_and_match(database, small_scene, names, model, params, "exhaustive", {}, "SIFT", False)
         db = pycolmap.Database.open(str(database))
         (camera,) = db.read_all_cameras()
         db.close()
-        assert camera.has_prior_focal_length == expect_prior and len(camera.params) == count
-        assert (camera.focal_length_x, camera.focal_length_y) == pytest.approx([123.5 if focal else 1.2 * max(width, height)] * 2)
+        assert camera.has_prior_focal_length and len(camera.params) == count
+        assert (camera.focal_length_x, camera.focal_length_y) == pytest.approx([expect_focal] * 2)
         assert (camera.principal_point_x, camera.principal_point_y) == pytest.approx((width / 2, height / 2))
         assert not np.any(np.asarray(camera.params)[camera.extra_params_idxs()])
     for bad in (0.0, -5.0, float("nan"), float("inf")):
         with pytest.raises(SfmError, match="--focal-length-px"):
             prior_camera_params(model, bad, small_scene / names[0])
+    guess = GUESSED_FOCAL_PER_LONG_SIDE * max(width, height)
+    assert camera_starts(model, None, small_scene / names[0]) == [
+        ("uncalibrated camera", ""), (f"camera from {guess:.0f} px", prior_camera_params(model, None, small_scene / names[0]))
+    ]
+    assert camera_starts(model, 123.5, small_scene / names[0]) == [("camera from 124 px", prior_camera_params(model, 123.5, small_scene / names[0]))]

@@ -118,3 +118,9 @@ def test_the_report_names_the_try_kept_and_how_far_the_others_turn(capsys) -> No
     out = " ".join(capsys.readouterr().out.split())
     assert "Kept the mapper's try 5, pooled SIFT (24 images, 1310 observations)" in out
     assert "try 1, SIFT: 6 images, 138 observations" in out and "try 4, pooled SIFT: 18 images" in out
+
+    result.cameras = ["uncalibrated camera"] * 2 + ["camera from 288 px"] * 3
+    report(result)
+    out = " ".join(capsys.readouterr().out.split())
+    assert "Kept the mapper's try 5, pooled SIFT, camera from 288 px (24 images, 1310 observations)" in out
+    assert "try 1, SIFT, uncalibrated camera: 6 images" in out

@@ -107,11 +107,13 @@ class SfmResult:
     unregistered: list[str]
     attempts: list[int] = field(default_factory=list)
     """Images registered by the best model of each mapper attempt, in order (:data:`MAPPER_ATTEMPTS` for each
-    of the :data:`DESCRIPTOR_PASSES` that ran)."""
+    camera start of each of the :data:`DESCRIPTOR_PASSES` that ran)."""
     observations: list[int] = field(default_factory=list)
     """Feature observations (:func:`~seathru_nerfstudio.data.sfm_models.num_observations`) of that model, per attempt."""
     descriptors: list[str] = field(default_factory=list)
     """The descriptors (:data:`DESCRIPTOR_PASSES`) each attempt mapped with."""
+    cameras: list[str] = field(default_factory=list)
+    """The camera start (:func:`camera_starts`) each attempt mapped from."""
     kept: int = 0
     """Index of the attempt whose model is ``reconstruction``."""
     disagreement_deg: list[float | None] = field(default_factory=list)
@@ -195,25 +197,49 @@ PRIOR_PARAMS = {
     "RADIAL": "{f},{cx},{cy},0,0",
     "OPENCV": "{f},{f},{cx},{cy},0,0,0,0",
 }
-"""COLMAP's parameter order per camera model, for a known focal length ``f`` (pixels), the principal
+"""COLMAP's parameter order per camera model, for a starting focal length ``f`` (pixels), the principal
 point at the image centre and no distortion."""
+GUESSED_FOCAL_PER_LONG_SIDE = 1.2
+"""Without a known focal length the camera is mapped from two starts (:func:`camera_starts`), and the
+model that explains more is kept: COLMAP's own, uncalibrated (it guesses this many times the long
+side, verifies matches with fundamental matrices alone and estimates a focal length with each new
+image's pose), and the same guess marked as a prior (essential matrices under it; bundle adjustment
+refines it all the same). Neither start is right everywhere. On the path-traced scenes (one focal
+length, 207.8 px at 240 × 160; ``seathru-pathtrace --preset P --seed L``), uncalibrated, clear
+layout 6 ended at 133.5 px with the cameras 14° off (0.93 px mean reprojection error, 7682
+observations), marked at 207.7 px and 0.09° (0.33 px, 8170); marked, from 0.5 to 2 times the true
+focal length alike. Marked, fog layout 6 went from 2.3° to 0.8° off, coastal 8 from 1.2° to 0.6°,
+turbid 4 from 6.2° to 5.0°, each with 5–8% more observations; but clear layout 0 ended 112° off
+(its camera centres mirrored) with 9310 observations at 0.38 px, where uncalibrated it was 0.4° off
+with 9673 at 0.36 px (docs/history.md, 2026-12-06 (two camera starts))."""
 
 
 def prior_camera_params(camera_model: str, focal_length_px: Optional[float], image: Path) -> str:
     """COLMAP's ``camera_params`` string for ``camera_model`` starting at ``focal_length_px`` (pixels of
-    ``image``, the principal point at its centre), or ``""`` (COLMAP's own guess) without it. An
-    :class:`SfmError` for a focal length that is not a finite positive number of pixels."""
-    if focal_length_px is None:
-        return ""
-    if not (math.isfinite(focal_length_px) and focal_length_px > 0):
+    ``image``), or at :data:`GUESSED_FOCAL_PER_LONG_SIDE` times its long side without one; the principal
+    point at its centre. An :class:`SfmError` for a focal length that is not a finite positive number of
+    pixels, a camera model without a starting layout, or an image that cannot be read."""
+    if focal_length_px is not None and not (math.isfinite(focal_length_px) and focal_length_px > 0):
         raise SfmError(f"--focal-length-px must be a positive number of pixels, got {focal_length_px}")
     if camera_model not in PRIOR_PARAMS:
-        raise SfmError(f"--focal-length-px: camera model {camera_model} is not one of {', '.join(PRIOR_PARAMS)}")
+        raise SfmError(f"camera model {camera_model} is not one of {', '.join(PRIOR_PARAMS)}")
     shape = cv2.imread(str(image), cv2.IMREAD_UNCHANGED)
     if shape is None:
         raise SfmError(f"{image}: could not read the image to place the principal point")
     height, width = shape.shape[:2]
-    return PRIOR_PARAMS[camera_model].format(f=float(focal_length_px), cx=width / 2.0, cy=height / 2.0)
+    focal = GUESSED_FOCAL_PER_LONG_SIDE * max(width, height) if focal_length_px is None else float(focal_length_px)
+    return PRIOR_PARAMS[camera_model].format(f=focal, cx=width / 2.0, cy=height / 2.0)
+
+
+def camera_starts(camera_model: str, focal_length_px: Optional[float], image: Path) -> list[tuple[str, str]]:
+    """The shared camera's starts, each ``(label, camera_params)`` (:func:`prior_camera_params`; ``""``:
+    COLMAP's uncalibrated guess): the known focal length alone where one is given, else COLMAP's
+    uncalibrated guess and :data:`GUESSED_FOCAL_PER_LONG_SIDE` times the long side as a prior."""
+    params = prior_camera_params(camera_model, focal_length_px, image)
+    focal = float(params.split(",")[0])
+    if focal_length_px is not None:
+        return [(f"camera from {focal:.0f} px", params)]
+    return [("uncalibrated camera", ""), (f"camera from {focal:.0f} px", params)]
 
 
 def mapper_options(attempt: dict[str, float]) -> pycolmap.IncrementalPipelineOptions:
@@ -252,17 +278,18 @@ def run_sfm(
     """SIFT extraction, matching and incremental mapping on every image in ``image_dir``.
 
     One camera (``camera_model``, COLMAP name) is shared by all images; its focal length
-    starts at ``focal_length_px`` (pixels of these images) where it is given, else at 1.2 × the
-    long side (no EXIF in the display copies), and is refined by bundle adjustment. ``work_dir`` receives ``database.db`` (``database_1.db`` for the second descriptors)
-    and the mapper's models.
+    starts at ``focal_length_px`` (pixels of these images) where it is given, else from both of
+    :func:`camera_starts` (no EXIF in the display copies), and is refined by bundle adjustment.
+    ``work_dir`` receives a database per descriptor pass and camera start (``database.db``,
+    ``database_1.db``, ...) and the mapper's models.
 
     The same images give the same result: features are extracted on one thread (COLMAP numbers
     the images in the order its threads finish them, and the mapper breaks ties by number), and
     matched on one thread (on two, under load, about one run in a hundred matched other
     features and gave other poses), the two-view RANSAC has a fixed seed, and the mapper runs on
     one thread with fixed seeds
-    (:func:`mapper_options`). Until :data:`COMPLETE_STARTS` of its starts hold
-    :data:`RETRY_BELOW_FRACTION` of the images, the mapper runs again with the next of
+    (:func:`mapper_options`). For each camera start, until :data:`COMPLETE_STARTS` of its mapper starts
+    hold :data:`RETRY_BELOW_FRACTION` of the images, the mapper runs again with the next of
     :data:`MAPPER_ATTEMPTS` (other initial pairs). While no start holds that share, the images are
     matched again with the next of :data:`DESCRIPTOR_PASSES` (pooled SIFT) and mapped as before.
     Over all tries the model with the most images wins, and among those the one that explains the
@@ -278,45 +305,51 @@ def run_sfm(
         raise SfmError(f"structure from motion needs at least 2 images, {source} has {len(names)}")
     if not 0.0 <= min_registered_fraction <= 1.0:
         raise SfmError(f"--min-registered-fraction must be in [0, 1], got {min_registered_fraction}")
-    camera_params = prior_camera_params(camera_model, focal_length_px, image_dir / names[0])
+    starts = camera_starts(camera_model, focal_length_px, image_dir / names[0])
     work_dir.mkdir(parents=True, exist_ok=True)
     if matching == "auto":
         matching = "exhaustive" if len(names) <= EXHAUSTIVE_MAX_IMAGES else "sequential"
 
-    best, candidates, descriptors = None, [], []
+    best, candidates, descriptors, cameras = None, [], [], []
 
-    def num_complete() -> int:
-        counts = [m.num_reg_images() if m is not None else 0 for m in candidates]
+    def num_complete(models: list) -> int:
+        counts = [m.num_reg_images() if m is not None else 0 for m in models]
         return complete_starts(counts, len(names), RETRY_BELOW_FRACTION)
 
     with _colmap_logging(verbose):
         for number, (label, sift) in enumerate(DESCRIPTOR_PASSES):
-            if num_complete() > 0:
+            if num_complete(candidates) > 0:
                 break
             if number > 0:
                 CONSOLE.print(
                     f"[yellow]The best model holds {best.num_reg_images() if best else 0}/{len(names)} images; "
                     f"matching again with {label} descriptors"
                 )
-            database = work_dir / ("database.db" if number == 0 else f"database_{number}.db")
-            _extract_and_match(database, image_dir, names, camera_model, camera_params, matching, sift, label, verbose)
-            for k, attempt in enumerate(MAPPER_ATTEMPTS):
-                if num_complete() >= COMPLETE_STARTS:
-                    break
-                if k >= COMPLETE_STARTS:  # beyond the minimum of starts
-                    CONSOLE.print(
-                        f"[yellow]{num_complete()} of the mapper's {len(candidates)} starts hold {RETRY_BELOW_FRACTION:.0%} "
-                        f"of the {len(names)} images; trying again with other initial pairs ({k + 1}/{len(MAPPER_ATTEMPTS)})"
-                    )
-                tries = len(candidates)
-                # a start that builds no model logs an error ("Failed to create any sparse model"); report() and
-                # SfmError say what each start did, in words that name the user's folder
-                with _colmap_logging(verbose, quiet_level=3):
-                    models = _map(database, image_dir, work_dir / f"models_{tries}", attempt, len(names), tries)
-                candidates.append(max(models.values(), key=model_rank, default=None))
-                descriptors.append(label)
-                if candidates[-1] is not None and (best is None or model_rank(candidates[-1]) > model_rank(best)):
-                    best = candidates[-1]
+            for start, (camera_label, camera_params) in enumerate(starts):
+                count = number * len(starts) + start
+                database = work_dir / ("database.db" if count == 0 else f"database_{count}.db")
+                _extract_and_match(database, image_dir, names, camera_model, camera_params, matching, sift, label, verbose)
+                these: list = []  # this camera start's models
+                for k, attempt in enumerate(MAPPER_ATTEMPTS):
+                    if num_complete(these) >= COMPLETE_STARTS:
+                        break
+                    if k >= COMPLETE_STARTS:  # beyond the minimum of starts
+                        CONSOLE.print(
+                            f"[yellow]{num_complete(these)} of the mapper's {len(these)} starts ({camera_label}) hold "
+                            f"{RETRY_BELOW_FRACTION:.0%} of the {len(names)} images; trying again with other initial pairs "
+                            f"({k + 1}/{len(MAPPER_ATTEMPTS)})"
+                        )
+                    tries = len(candidates)
+                    # a start that builds no model logs an error ("Failed to create any sparse model"); report() and
+                    # SfmError say what each start did, in words that name the user's folder
+                    with _colmap_logging(verbose, quiet_level=3):
+                        models = _map(database, image_dir, work_dir / f"models_{tries}", attempt, len(names), tries)
+                    these.append(max(models.values(), key=model_rank, default=None))
+                    candidates.append(these[-1])
+                    descriptors.append(label)
+                    cameras.append(camera_label)
+                    if these[-1] is not None and (best is None or model_rank(these[-1]) > model_rank(best)):
+                        best = these[-1]
     if best is None:
         raise SfmError(
             f"structure from motion registered none of the {len(names)} images of {source} "
@@ -332,6 +365,7 @@ def run_sfm(
         unregistered=unregistered,
         attempts=attempts,
         descriptors=descriptors,
+        cameras=cameras,
         observations=[num_observations(m) if m is not None else 0 for m in candidates],
         kept=next(i for i, m in enumerate(candidates) if m is best),
         disagreement_deg=[None if m is None else models_disagreement_deg(best, m) for m in candidates],
@@ -359,7 +393,7 @@ def _extract_and_match(
 ) -> None:
     """SIFT extraction (COLMAP's options, then ``sift``'s) and matching into ``database``, on one thread
     each, with fixed seeds (see :func:`run_sfm`); ``camera_params``: the camera's starting parameters
-    (:func:`prior_camera_params`; empty: COLMAP's guess)."""
+    (:func:`prior_camera_params`), which COLMAP marks as a prior focal length."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = camera_model
     reader.camera_params = camera_params
@@ -412,8 +446,10 @@ def report(result: SfmResult) -> None:
     CONSOLE.print(
         f"[bold {colour}]Registered {len(result.registered)}/{total} images ({100 * result.registration_rate:.0f}%)"
     )
-    passes = len(set(result.descriptors)) > 1  # name the descriptors only where they differ
-    label = [f", {d}" if passes else "" for d in result.descriptors] or [""] * len(result.attempts)
+    label = [""] * len(result.attempts)
+    for names in (result.descriptors, result.cameras):  # each named only where the tries differ in it
+        if len(set(names)) > 1:
+            label = [f"{before}, {name}" for before, name in zip(label, names)]
     others = [
         f"try {i + 1}{label[i]}: {n} images, {o} observations" + ("" if d is None else f", cameras {d:.1f}° apart (median)")
         for i, (n, o, d) in enumerate(zip(result.attempts, result.observations, result.disagreement_deg))

@@ -44,12 +44,13 @@ from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 GENERATOR_VERSION = 2
 """Bumped when the same options would render a different scene (part of the cache key)."""
-REGISTRATION_VERSION = 4
+REGISTRATION_VERSION = 5
 """Bumped when the same renders would register otherwise (part of the cache key, not of the
 renders' key: a cached scene keeps its renders and is registered again, in seconds). 2: the
 mapper's model chosen among two starts by the observations it explains (``data/sfm.py``); 3: pooled
 SIFT descriptors matched again where SIFT registers under 80% of the views; 4: the mapper starts until
-two of its starts hold 80% of the views."""
+two of its starts hold 80% of the views; 5: without a known focal length the camera starts at 1.2 × the
+long side marked as a prior (``data/sfm.py``, ``GUESSED_FOCAL_PER_LONG_SIDE``)."""
 DEFAULT_ROOT = Path("outputs/pathtraced")
 SUN_OPTIONS = ("sun_elevation_deg", "sun_azimuth_deg")
 """Options that replace the preset's sun (None: the preset's own)."""
@@ -86,7 +87,7 @@ class PathtraceConfig:
     length, no distortion): PINHOLE's two focal lengths came out 10% apart on turbid water."""
     sfm_focal_prior: bool = False
     """--poses sfm: SfM starts from the renderer's focal length, as from a calibrated camera's (still refined);
-    off: from 1.2 x the long side, self-calibrated, as for images without EXIF."""
+    off: from 1.2 x the long side, as for images without EXIF (refined alike)."""
     sfm_points_per_view: int = 300
     """--poses truth: sparse depth points per view."""
     variant: Literal["auto", "llvm_ad_rgb", "scalar_rgb"] = "auto"
