@@ -19,7 +19,10 @@ def scene(tmp_path_factory) -> Path:
 
 
 def _children() -> set:
-    return {child.pid for child in psutil.Process().children(recursive=True)}
+    """This process's direct children: a worker or a multiprocessing helper the data manager starts is
+    one, while the processes of other tests' fork server (``forked_cli``) are its grandchildren and
+    may come and go at any moment."""
+    return {child.pid for child in psutil.Process().children()}
 
 
 def _stop(manager) -> None:

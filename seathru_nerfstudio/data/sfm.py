@@ -200,18 +200,12 @@ PRIOR_PARAMS = {
 """COLMAP's parameter order per camera model, for a starting focal length ``f`` (pixels), the principal
 point at the image centre and no distortion."""
 GUESSED_FOCAL_PER_LONG_SIDE = 1.2
-"""Without a known focal length the camera is mapped from two starts (:func:`camera_starts`), and the
-model that explains more is kept: COLMAP's own, uncalibrated (it guesses this many times the long
-side, verifies matches with fundamental matrices alone and estimates a focal length with each new
-image's pose), and the same guess marked as a prior (essential matrices under it; bundle adjustment
-refines it all the same). Neither start is right everywhere. On the path-traced scenes (one focal
-length, 207.8 px at 240 × 160; ``seathru-pathtrace --preset P --seed L``), uncalibrated, clear
-layout 6 ended at 133.5 px with the cameras 14° off (0.93 px mean reprojection error, 7682
-observations), marked at 207.7 px and 0.09° (0.33 px, 8170); marked, from 0.5 to 2 times the true
-focal length alike. Marked, fog layout 6 went from 2.3° to 0.8° off, coastal 8 from 1.2° to 0.6°,
-turbid 4 from 6.2° to 5.0°, each with 5–8% more observations; but clear layout 0 ended 112° off
-(its camera centres mirrored) with 9310 observations at 0.38 px, where uncalibrated it was 0.4° off
-with 9673 at 0.36 px (docs/history.md, 2026-12-06 (two camera starts))."""
+"""Without a known focal length the camera is mapped from two starts (:func:`camera_starts`) and the model
+that explains more is kept: COLMAP's own guess of this many times the long side, uncalibrated (fundamental
+matrices, a focal length estimated with each new pose), and the same guess marked as a prior (essential
+matrices; still refined). Neither is right everywhere: on path-traced clear layout 6 the uncalibrated start
+ended 36% short and 14° off, the marked one 0.09° off; on clear layout 0 the marked start mirrored the
+camera centres, the uncalibrated one was 0.4° off (docs/data.md, docs/pathtraced.md)."""
 
 
 def prior_camera_params(camera_model: str, focal_length_px: Optional[float], image: Path) -> str:
