@@ -13,7 +13,7 @@ import pytest
 
 from seathru_nerfstudio.data.io import write_png16
 from seathru_nerfstudio.data.process import ProcessReport, ProcessSeathruData, process
-from seathru_nerfstudio.data.sfm import display_transform, feature_image
+from seathru_nerfstudio.data.sfm_images import display_transform, feature_image
 from seathru_nerfstudio.data.synthetic import SynthConfig, generate
 
 
@@ -220,7 +220,7 @@ SMALL = dict(width=160, height=120, num_views=10, sfm_points_per_view=0)
 def display_copies(scene: Path, folder: Path, prefix: str = "") -> Path:
     """The display copies that run_sfm reads, as seathru-process-data writes them."""
     from seathru_nerfstudio.data.linear_images import read_linear_image
-    from seathru_nerfstudio.data.sfm import write_display_copy
+    from seathru_nerfstudio.data.sfm_images import write_display_copy
 
     for path in sorted((scene / "images").glob("*.png")):
         write_display_copy(folder / f"{prefix}{path.name}", read_linear_image(path)[..., :3])
@@ -383,3 +383,31 @@ def test_the_camera_starts_at_a_known_or_guessed_focal_length_marked_as_a_prior(
         ("uncalibrated camera", ""), (f"camera from {guess:.0f} px", prior_camera_params(model, None, small_scene / names[0]))
     ]
     assert camera_starts(model, 123.5, small_scene / names[0]) == [("camera from 124 px", prior_camera_params(model, 123.5, small_scene / names[0]))]
+
+
+def test_a_further_camera_start_reuses_the_matches_and_verifies_them_as_a_fresh_extraction_would(small_scene, tmp_path) -> None:
+    """The marked camera start copies the first start's features and matches and runs the two-view verification
+    again: its database holds the same camera, the same verified pairs and the same inlier matches as extracting
+    and matching anew under that camera, and differs from the first start's, whose camera is not marked."""
+    import pycolmap
+
+    from seathru_nerfstudio.data.sfm import _extract_and_match, _verify_again, camera_starts
+
+    names = sorted(p.name for p in small_scene.glob("*.png"))[:6]
+    (_, unmarked), (_, marked) = camera_starts("SIMPLE_PINHOLE", None, small_scene / names[0])
+    _extract_and_match(tmp_path / "first.db", small_scene, names, "SIMPLE_PINHOLE", unmarked, "exhaustive", {}, "SIFT", False)
+    _extract_and_match(tmp_path / "fresh.db", small_scene, names, "SIMPLE_PINHOLE", marked, "exhaustive", {}, "SIFT", False)
+    _verify_again(tmp_path / "first.db", tmp_path / "reused.db", marked, False)
+
+    def contents(name: str):
+        db = pycolmap.Database.open(str(tmp_path / name))
+        (camera,) = db.read_all_cameras()
+        pair_ids, geometries = db.read_two_view_geometries()
+        db.close()
+        verified = {i: (int(g.config), np.asarray(g.inlier_matches).tolist()) for i, g in zip(pair_ids, geometries)}
+        return (camera.has_prior_focal_length, list(camera.params)), verified
+
+    first, fresh, reused = contents("first.db"), contents("fresh.db"), contents("reused.db")
+    assert reused == fresh
+    assert first[0][0] is False and reused[0][0] is True
+    assert any(first[1].get(i, (None,))[0] != config for i, (config, _) in reused[1].items())  # the camera changed the verification

@@ -48,8 +48,8 @@ from seathru_nerfstudio.data.sfm import (
     SfmResult,
     report,
     run_sfm,
-    write_display_copy,
 )
+from seathru_nerfstudio.data.sfm_images import write_display_copy
 from seathru_nerfstudio.data.sfm_outputs import write_outputs
 from seathru_nerfstudio.input_errors import InputError, exit_on_input_error
 from seathru_nerfstudio.quiet import silence_upstream_warnings

@@ -3,10 +3,9 @@ the files nerfstudio / LLFF expect.
 
 Conventions
 -----------
-* SIFT runs on a *display-transformed* 8-bit copy of each linear image (normalised, gamma
-  1/2.2): linear underwater frames are dark and flat, and SIFT's contrast threshold would
-  find few features in them. The copies carry the same file names as the linear images,
-  so COLMAP's image names are the dataset's image names.
+* SIFT runs on an 8-bit copy of each linear image (:mod:`~seathru_nerfstudio.data.sfm_images`).
+  The copies carry the same file names as the linear images, so COLMAP's image names are the
+  dataset's image names.
 * COLMAP world units are arbitrary up to the written files: the mapper's scale is rescaled
   (:func:`~seathru_nerfstudio.data.sfm_outputs.normalise_gauge`) so the 99th percentile of the
   points' z-depths is 32.77 units,
@@ -22,13 +21,12 @@ from __future__ import annotations
 
 import contextlib
 import math
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Literal, Optional
 
 import cv2  # before pycolmap, always: see the note below
-import numpy as np
-import numpy.typing as npt
 import pycolmap
 
 from nerfstudio.utils.rich_utils import CONSOLE, get_progress, status
@@ -43,59 +41,11 @@ MatchingMethod = Literal["auto", "exhaustive", "sequential"]
 EXHAUSTIVE_MAX_IMAGES = 50
 """``auto`` matching pairs every image with every other up to this many images (quadratic
 cost), then switches to sequential matching (each image against its next neighbours)."""
-DISPLAY_GAMMA = 2.2
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff")
 
 
 class SfmError(InputError):
     """Structure from motion could not produce a usable reconstruction from these images."""
-
-
-def display_transform(image: npt.NDArray[np.floating], percentile: float = 99.5) -> npt.NDArray[np.uint8]:
-    """Linear RGB -> 8-bit display RGB for feature detection only (never for training).
-
-    Divides by the image's own ``percentile`` value (over all channels), clips, and applies
-    gamma ``1 / 2.2``; this lifts the shadows where underwater texture lives.
-    """
-    step = max(1, max(image.shape[:2]) // 1024)  # a strided sample is plenty for one percentile
-    white = float(np.percentile(image[::step, ::step], percentile))
-    normalised = np.clip(image / max(white, 1e-6), 0.0, 1.0)
-    return np.round(normalised ** (1.0 / DISPLAY_GAMMA) * 255.0).astype(np.uint8)
-
-
-FEATURE_BLUR_PX = 1.0
-"""Gaussian σ, in pixels, of the blur before SIFT. COLMAP detects from an image upsampled 2×,
-where per-pixel noise (high ISO, or a path tracer's samples) makes features that match nothing."""
-CONTRAST_TILES = 4
-"""Local contrast equalisation (CLAHE) works on this many tiles along each side of the image."""
-CONTRAST_CLIP = 2.0
-"""CLAHE's clip limit: a tile's histogram is clipped at this multiple of its mean bin count,
-which bounds how much a flat tile's noise is amplified (OpenCV's usual value)."""
-
-
-def feature_image(display: npt.NDArray[np.uint8]) -> npt.NDArray[np.uint8]:
-    """The display copy SIFT sees: blurred by :data:`FEATURE_BLUR_PX`, then its lightness
-    equalised tile by tile (CLAHE, :data:`CONTRAST_TILES`, :data:`CONTRAST_CLIP`).
-
-    Why: a medium adds a veil that grows with range and scales the texture behind it by
-    ``e^{-β_D z}``, so far texture is a few grey levels on a bright offset; one tone curve for the
-    whole image cannot lift it, a per-region equalisation can. On the path-traced scenes
-    (240×160, 256 spp; docs/data.md) coastal water goes from 0/24 images registered to 23/24
-    (median rotation error 1.6°), fog from 16/24 (5.9°) to 24/24 (1.0°), clear air stays 24/24
-    (0.27° to 0.21°). Neither step alone registers coastal water (CLAHE alone: 5/24)."""
-    blurred = cv2.GaussianBlur(display, (0, 0), FEATURE_BLUR_PX)
-    lab = cv2.cvtColor(blurred, cv2.COLOR_RGB2LAB)
-    equalise = cv2.createCLAHE(clipLimit=CONTRAST_CLIP, tileGridSize=(CONTRAST_TILES, CONTRAST_TILES))
-    lab[..., 0] = equalise.apply(np.ascontiguousarray(lab[..., 0]))
-    return cv2.cvtColor(lab, cv2.COLOR_LAB2RGB)
-
-
-def write_display_copy(path: Path, image: npt.NDArray[np.floating]) -> None:
-    """Write :func:`feature_image` of :func:`display_transform` of a linear RGB image as an 8-bit
-    PNG, the copy structure from motion runs on."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), feature_image(display_transform(image))[..., ::-1]):
-        raise OSError(f"{path}: could not write image")
 
 
 @dataclass
@@ -275,7 +225,8 @@ def run_sfm(
     starts at ``focal_length_px`` (pixels of these images) where it is given, else from both of
     :func:`camera_starts` (no EXIF in the display copies), and is refined by bundle adjustment.
     ``work_dir`` receives a database per descriptor pass and camera start (``database.db``,
-    ``database_1.db``, ...) and the mapper's models.
+    ``database_1.db``, ...) and the mapper's models. Features are extracted and matched once per pass; a
+    further camera start copies them and runs only the two-view verification again (:func:`_verify_again`).
 
     The same images give the same result: features are extracted on one thread (COLMAP numbers
     the images in the order its threads finish them, and the mapper breaks ties by number), and
@@ -322,7 +273,11 @@ def run_sfm(
             for start, (camera_label, camera_params) in enumerate(starts):
                 count = number * len(starts) + start
                 database = work_dir / ("database.db" if count == 0 else f"database_{count}.db")
-                _extract_and_match(database, image_dir, names, camera_model, camera_params, matching, sift, label, verbose)
+                if start == 0:
+                    _extract_and_match(database, image_dir, names, camera_model, camera_params, matching, sift, label, verbose)
+                    matched = database
+                else:  # the same features and matches; only the two-view geometry depends on the camera
+                    _verify_again(matched, database, camera_params, verbose)
                 these: list = []  # this camera start's models
                 for k, attempt in enumerate(MAPPER_ATTEMPTS):
                     if num_complete(these) >= COMPLETE_STARTS:
@@ -374,6 +329,13 @@ def run_sfm(
     return result
 
 
+def _verification_options() -> pycolmap.TwoViewGeometryOptions:
+    """COLMAP's two-view verification options with a fixed RANSAC seed (default -1: a new seed, other inliers, every run)."""
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = SEED
+    return verification
+
+
 def _extract_and_match(
     database: Path,
     image_dir: Path,
@@ -398,8 +360,7 @@ def _extract_and_match(
         setattr(extraction.sift, name, value)
     matching_options = pycolmap.FeatureMatchingOptions()
     matching_options.num_threads = 1  # other matches now and then on several threads (see run_sfm)
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = SEED  # default -1: a new seed every run, other inliers every run
+    verification = _verification_options()
     pycolmap.set_random_seed(SEED)
     with status(f"[bold yellow]Extracting {label} features from {len(names)} images...", verbose=verbose):
         pycolmap.extract_features(
@@ -414,6 +375,30 @@ def _extract_and_match(
     with status(f"[bold yellow]Matching features ({matching})...", verbose=verbose):
         match = pycolmap.match_exhaustive if matching == "exhaustive" else pycolmap.match_sequential
         match(database, matching_options=matching_options, verification_options=verification, device=pycolmap.Device.cpu)
+
+
+def _verify_again(matched: Path, database: Path, camera_params: str, verbose: bool) -> None:
+    """Copy ``matched`` (features and matches of :func:`_extract_and_match`) to ``database``, give its camera
+    ``camera_params`` marked as a prior, and run the two-view verification again with the same seeded options.
+    ``database`` then holds what :func:`_extract_and_match` would write from these parameters, to the bit (the
+    same keypoints, matches and inliers; extraction and descriptor matching do not read the camera), at the
+    cost of the verification alone."""
+    database.unlink(missing_ok=True)
+    shutil.copyfile(matched, database)
+    db = pycolmap.Database.open(str(database))
+    try:
+        (camera,) = db.read_all_cameras()
+        camera.params = [float(value) for value in camera_params.split(",")]
+        camera.has_prior_focal_length = True
+        db.update_camera(camera)
+        db.clear_two_view_geometries()
+    finally:
+        db.close()
+    verifier = pycolmap.GeometricVerifierOptions()
+    verifier.num_threads = 1  # as the matcher's (see run_sfm)
+    pycolmap.set_random_seed(SEED)
+    with status("[bold yellow]Verifying the matches under the marked camera...", verbose=verbose):
+        pycolmap.geometric_verification(database, verifier_options=verifier, two_view_geometry_options=_verification_options())
 
 
 def _map(database: Path, image_dir: Path, output: Path, attempt: dict[str, float], total: int, number: int) -> dict:
