@@ -24,6 +24,12 @@ Last, within and beyond the far bound, the median log ratio by the cosine betwee
 surface normal (from the range map's gradients, :func:`incidence_cosines`): whether a surface placed
 too near is one the ray grazes (a blurred surface meets a grazing ray early) or one past the SfM's reach.
 
+For a run with a medium, last of all, within and beyond the bound: the observed colour beside the
+backscatter the run's medium gives at the true range, ``c_med (1 − e^{−σ_bs z})`` per ray, and the
+scene's best fit gives there, and the share of pixels whose colour is darker than that in some channel:
+there the run could put the surface at its true range only with ``J < 0``, so it moves it nearer. A
+veil brighter than the surfaces' makes far surfaces come near (coastal 7, docs/history.md, 2026-12-07 (after dffa48e)).
+
     .venv/bin/python scripts/probe_depth_error.py RUN/config.yml outputs/pathtraced/turbid_s3
 """
 
@@ -68,16 +74,43 @@ def object_depths(config: Path, scene: Path) -> Tuple[dict, float]:
     pipeline, scale = load_run(config)
     far_plane = pipeline.datamanager.train_dataparser_outputs.metadata.get("far_plane")
     far_bound = float(far_plane) / scale if far_plane is not None else float("nan")
-    columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth", "cosine")}
-    for _, _, camera, true_range, outputs in held_out_renders(pipeline, scene):
+    from seathru_nerfstudio.data.linear_images import read_linear_image
+
+    columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth", "cosine", "observed", "run_backscatter")}
+    for _, name, camera, true_range, outputs in held_out_renders(pipeline, scene):
         objects = np.isfinite(true_range) & (true_range > 0)
+        if "medium_rgb" in outputs:  # the run's backscatter at the true range, per channel
+            density = outputs["medium_backscatter"].numpy()[objects].astype(np.float64) * scale
+            veil = outputs["medium_rgb"].numpy()[objects].astype(np.float64)
+            columns["run_backscatter"].append(veil * -np.expm1(-density * true_range[objects, None]))
+            columns["observed"].append(read_linear_image(scene / "images" / f"{name}.png")[..., :3][objects].astype(np.float64))
         columns["cosine"].append(incidence_cosines(camera, true_range)[objects])
         depth = outputs["depth"][..., 0].numpy() / scale
         columns["range"].append(true_range[objects])
         columns["depth"].append(depth[objects])
         columns["accumulation"].append(outputs["accumulation"][..., 0].numpy()[objects])
         columns["open_depth"].append(depth[~np.isfinite(true_range)])
-    return {key: np.concatenate(parts) for key, parts in columns.items()}, far_bound
+    return {key: np.concatenate(parts) for key, parts in columns.items() if parts}, far_bound
+
+
+def backscatter_at_true_range(samples: dict, scene: Path, beyond: np.ndarray) -> None:
+    """Print, within and beyond the far bound, the median observed colour, the run's and the best fit's
+    backscatter at the true range, and the share of pixels darker than each in some channel."""
+    truth = json.loads((scene / "ground_truth" / "medium.json").read_text())
+    best_fit = np.asarray(truth["B_inf"]) * -np.expm1(-np.asarray(truth["beta_B"]) * samples["range"][:, None])
+    observed, run = samples["observed"], samples["run_backscatter"]
+    log_ratio = np.log(np.maximum(samples["depth"], 1e-6) / samples["range"])
+    for label, mask in (("within the bound", ~beyond), ("beyond it", beyond)):
+        if not mask.any():
+            continue
+        darker = (observed[mask] < run[mask]).any(axis=1)
+        print(
+            f"{label}: observed colour median {np.round(np.median(observed[mask], axis=0), 4)}, backscatter at the true "
+            f"range: the run's {np.round(np.median(run[mask], axis=0), 4)}, the best fit's {np.round(np.median(best_fit[mask], axis=0), 4)}; "
+            f"darker than the run's in some channel (J < 0 at the true range) {darker.mean():.0%} (log ratio "
+            f"{np.median(log_ratio[mask][darker]) if darker.any() else float('nan'):+.3f}), than the best fit's "
+            f"{(observed[mask] < best_fit[mask]).any(axis=1).mean():.0%}"
+        )
 
 
 def main(config: Path, scene: Path) -> None:
@@ -116,6 +149,8 @@ def main(config: Path, scene: Path) -> None:
             bins = [f"{low:.2f}–{high:.2f}: {np.median(log_ratio[band]):+.3f} ({band.sum()})" for low, high in INCIDENCE_BINS
                     if (band := mask & (cosine >= low) & (cosine < high)).sum() >= MIN_BIN_PIXELS]  # fmt: skip
             print(f"{label}, median log ratio by |cos| of the ray against the surface normal (pixels): {'; '.join(bins) or '–'}")
+        if "run_backscatter" in samples:
+            backscatter_at_true_range(samples, scene, beyond)
     too_near = (rel > FAR_OFF) & (log_ratio < 0)
     if too_near.any():
         open_depth = samples["open_depth"]
