@@ -25,7 +25,8 @@ surface normal (from the range map's gradients, :func:`incidence_cosines`): whet
 too near is one the ray grazes (a blurred surface meets a grazing ray early) or one past the SfM's reach.
 
 For a run with a medium, last of all, within and beyond the bound: the observed colour beside the
-backscatter the run's medium gives at the true range, ``c_med (1 − e^{−σ_bs z})`` per ray, and the
+backscatter the run's medium gives at the true range, ``c_med (1 − e^{−σ_bs z / G})`` per ray as it renders
+it (``G`` the veil's rise looking up, :func:`~seathru_nerfstudio.rendering.depth_lit_backscatter_density`), and the
 scene's best fit gives there, and the share of pixels whose colour is darker than that in some channel:
 there the run could put the surface at its true range only with ``J < 0``, so it moves it nearer. A
 veil brighter than the surfaces' makes far surfaces come near (coastal 7, docs/history.md, 2026-12-07 (after dffa48e)).
@@ -75,12 +76,19 @@ def object_depths(config: Path, scene: Path) -> Tuple[dict, float]:
     far_plane = pipeline.datamanager.train_dataparser_outputs.metadata.get("far_plane")
     far_bound = float(far_plane) / scale if far_plane is not None else float("nan")
     from seathru_nerfstudio.data.linear_images import read_linear_image
+    from seathru_nerfstudio.medium_field import SceneMedium
+    from seathru_nerfstudio.rendering import depth_lit_backscatter_density
 
     columns = {k: [] for k in ("range", "depth", "accumulation", "open_depth", "cosine", "observed", "run_backscatter")}
     for _, name, camera, true_range, outputs in held_out_renders(pipeline, scene):
         objects = np.isfinite(true_range) & (true_range > 0)
-        if "medium_rgb" in outputs:  # the run's backscatter at the true range, per channel
-            density = outputs["medium_backscatter"].numpy()[objects].astype(np.float64) * scale
+        if "medium_rgb" in outputs:  # the run's backscatter at the true range, per channel, as it renders it
+            density = outputs["medium_backscatter"]
+            medium = pipeline.model.medium_field
+            if isinstance(medium, SceneMedium):  # a veil raised looking up keeps the level rate in front of a surface
+                directions = camera.generate_rays(camera_indices=0).directions.to(density.device)
+                density = depth_lit_backscatter_density(density, medium.rendered_veil_gain(directions))
+            density = density.numpy()[objects].astype(np.float64) * scale
             veil = outputs["medium_rgb"].numpy()[objects].astype(np.float64)
             columns["run_backscatter"].append(veil * -np.expm1(-density * true_range[objects, None]))
             columns["observed"].append(read_linear_image(scene / "images" / f"{name}.png")[..., :3][objects].astype(np.float64))
@@ -93,13 +101,12 @@ def object_depths(config: Path, scene: Path) -> Tuple[dict, float]:
     return {key: np.concatenate(parts) for key, parts in columns.items() if parts}, far_bound
 
 
-def backscatter_at_true_range(samples: dict, scene: Path, beyond: np.ndarray) -> None:
+def backscatter_at_true_range(samples: dict, scene: Path, beyond: np.ndarray, log_ratio: np.ndarray) -> None:
     """Print, within and beyond the far bound, the median observed colour, the run's and the best fit's
     backscatter at the true range, and the share of pixels darker than each in some channel."""
     truth = json.loads((scene / "ground_truth" / "medium.json").read_text())
     best_fit = np.asarray(truth["B_inf"]) * -np.expm1(-np.asarray(truth["beta_B"]) * samples["range"][:, None])
     observed, run = samples["observed"], samples["run_backscatter"]
-    log_ratio = np.log(np.maximum(samples["depth"], 1e-6) / samples["range"])
     for label, mask in (("within the bound", ~beyond), ("beyond it", beyond)):
         if not mask.any():
             continue
@@ -150,7 +157,7 @@ def main(config: Path, scene: Path) -> None:
                     if (band := mask & (cosine >= low) & (cosine < high)).sum() >= MIN_BIN_PIXELS]  # fmt: skip
             print(f"{label}, median log ratio by |cos| of the ray against the surface normal (pixels): {'; '.join(bins) or '–'}")
         if "run_backscatter" in samples:
-            backscatter_at_true_range(samples, scene, beyond)
+            backscatter_at_true_range(samples, scene, beyond, log_ratio)
     too_near = (rel > FAR_OFF) & (log_ratio < 0)
     if too_near.any():
         open_depth = samples["open_depth"]
