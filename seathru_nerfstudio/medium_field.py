@@ -203,6 +203,10 @@ def level_components(directions: Float[Tensor, "*batch 3"], axes: Float[Tensor, 
     return (directions.float() @ axes.to(directions.device).float()).clamp(-1.0, 1.0)
 
 
+SURFACE_VEIL_BUFFERS = ("surface_veil", "surface_veil_from", "surface_veil_to")
+"""Buffers a checkpoint from before the surfaces' veil lacks (they keep 1: one veil)."""
+
+
 class SceneMedium(nn.Module):
     """One homogeneous water body: ``c_med``, ``sigma_attn`` and ``sigma_bs`` are nine
     learned constants (sigmoid and softplus, as the MLP's heads). The densities are the same for
@@ -250,6 +254,11 @@ class SceneMedium(nn.Module):
         """The densities before the medium fit and (:attr:`fit_to`) the fit, per scene unit, between which
         :meth:`move_to_fit` moves them (zeros: no fit yet); in checkpoints, so a resumed run moves alike."""
         self.register_buffer("fit_to", torch.zeros(6))
+        self.register_buffer("surface_veil", torch.ones(3))
+        """The veil in front of the surfaces over ``c_med``, per channel in (0, 1] (:mod:`~seathru_nerfstudio.surface_veil`);
+        moves from :attr:`surface_veil_from` to :attr:`surface_veil_to` with the densities (:meth:`move_to_fit`)."""
+        self.register_buffer("surface_veil_from", torch.ones(3))
+        self.register_buffer("surface_veil_to", torch.ones(3))
 
     def set_veil_rise(self, start: float | Float[Tensor, "3"], rise: Float[Tensor, "3"], end: float = 1.0) -> None:
         """Hold the veil at ``c_med (1 + rise clamp(up - start, 0, end - start))``, ``up = sin(elevation)``;
@@ -274,14 +283,14 @@ class SceneMedium(nn.Module):
         self, state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs
     ):  # noqa: ANN001
         """A checkpoint from before the start was per channel holds one start: every channel takes it.
-        One from before the change round the horizon has none: those buffers keep what they hold (a
-        factor of 1 on a new model) and are not reported missing. Nothing is added to ``state_dict``:
+        One from before the change round the horizon or the surfaces' veil has none: those buffers keep what
+        they hold (a factor of 1 on a new model) and are not reported missing. Nothing is added to ``state_dict``:
         nerfstudio loads the pipeline's own keys into every module after the model's."""
         key = prefix + "veil_rise_from"
         if key in state_dict and state_dict[key].dim() == 0:
             state_dict[key] = state_dict[key].expand(3).clone()
         super()._load_from_state_dict(state_dict, prefix, local_metadata, strict, missing_keys, unexpected_keys, error_msgs)
-        for name in ("veil_across", "veil_across_mean", "veil_across_low", "veil_across_high"):
+        for name in ("veil_across", "veil_across_mean", "veil_across_low", "veil_across_high") + SURFACE_VEIL_BUFFERS:
             if prefix + name in missing_keys:
                 missing_keys.remove(prefix + name)
 
@@ -325,11 +334,15 @@ class SceneMedium(nn.Module):
         with torch.no_grad():
             self.density_raw[first : first + len(values)].copy_(torch.tensor(values, dtype=self.density_raw.dtype))
 
-    def start_move_to_fit(self, fitted: Float[Tensor, "6"]) -> None:
-        """Record the densities now and ``fitted`` (per scene unit, > 0) as the ends of :meth:`move_to_fit`."""
+    def start_move_to_fit(self, fitted: Float[Tensor, "6"], surface_veil: Float[Tensor, "3"] | None = None) -> None:
+        """Record the densities now and ``fitted`` (per scene unit, > 0) as the ends of :meth:`move_to_fit`, and
+        likewise the surfaces' veil now and ``surface_veil`` (in (0, 1]; ``None``: it stays)."""
         with torch.no_grad():
             self.fit_from.copy_(nn.functional.softplus(self.density_raw.double()).float())
             self.fit_to.copy_(fitted.float())
+            self.surface_veil_from.copy_(self.surface_veil)
+            target = self.surface_veil if surface_veil is None else torch.as_tensor(surface_veil).to(self.surface_veil)
+            self.surface_veil_to.copy_(target.clamp(torch.finfo(torch.float32).tiny, 1.0))
 
     def move_to_fit(self, share: float, held: Tensor) -> None:
         """Set the ``held`` densities (six booleans) to ``from^(1 - share) · to^share`` (log space; ``share``
@@ -340,6 +353,9 @@ class SceneMedium(nn.Module):
         moved = torch.exp(torch.lerp(self.fit_from.double().log(), self.fit_to.double().log(), share))
         now = nn.functional.softplus(self.density_raw.detach().double())
         self.set_densities(torch.where(held.to(moved.device).bool(), moved, now))
+        with torch.no_grad():
+            log_from, log_to = self.surface_veil_from.double().log(), self.surface_veil_to.double().log()
+            self.surface_veil.copy_(torch.exp(torch.lerp(log_from, log_to, share)).float())
 
     def density_parameters(self) -> list:
         """The attenuation and backscatter densities: weakly determined by the images, so they

@@ -46,6 +46,7 @@ from seathru_nerfstudio.medium_fit_errors import LOG_DENSITY_LIMIT, log_density_
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
 from seathru_nerfstudio.oracles import replace_with_truth
 from seathru_nerfstudio.phases import TrainingPhases
+from seathru_nerfstudio.surface_veil import read_surface_veil
 
 
 CAUCHY_TUNING = 2.385
@@ -393,6 +394,13 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
         return
     medium = model.medium_field
     densities, veil, fit = fit_model_medium(model, table, tie=model.medium_model)
+    surface_veil = read_surface_veil(model, fit.attenuation, step)
+    if surface_veil is not None:  # the fit again, under the veil in front of the surfaces
+        veil = veil * surface_veil
+        fit = fit_densities(
+            torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit.attenuation, fit.backscatter,
+            tie=model.medium_model,
+        )
     model.fit_log_error.copy_(fit.attenuation_log_error.to(model.fit_log_error))
     model.fit_backscatter_log_error.copy_(fit.backscatter_log_error.to(model.fit_backscatter_log_error))
     sensitivity = veil_sensitivity(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit, model.medium_model)
@@ -414,7 +422,7 @@ def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
         beta_d, beta_b, replaced = replace_with_truth(model.fit_oracle, parts, beta_d, beta_b, ~uncertain)
         CONSOLE.print(f"[bold]seathru step {step}: medium_fit_oracle: the true densities ({parts}) replace the fit")
     fitted = torch.cat([beta_d, beta_b]) / model.world_scale
-    medium.start_move_to_fit(fitted)  # reached after auto_blend_steps
+    medium.start_move_to_fit(fitted, surface_veil)  # reached after auto_blend_steps
     if optimizers is not None and "medium_density" in optimizers.optimizers:
         optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
     model.densities_fitted.copy_(replaced.to(model.densities_fitted.device))

@@ -9,7 +9,9 @@ What the file holds (``write_medium_report``; the trainer writes it at every che
   (``seathru-synth`` scenes: ``ground_truth/medium.json`` has ``"world_units": "m"``; any
   capture: ``"world_units": "m"`` in ``transforms.json``), else ``"world unit (scale
   unknown)"``: a COLMAP reconstruction has no scale, and its densities are per COLMAP unit.
-* ``B_inf``: the veiling light (backscatter at infinity), linear RGB.
+* ``B_inf``: the veiling light (backscatter at infinity), linear RGB: that in front of the surfaces, which
+  the formation model's ``B_inf (1 - e^{-beta_B z})`` reaches. ``B_inf_open_water`` (scene medium, where it is
+  brighter): the open water's, whose excess reaches a ray only past all matter (:mod:`~seathru_nerfstudio.surface_veil`).
 * ``attenuation_length``: ``1 / beta_D``, the distance over which the direct light falls to
   ``1/e`` (world units).
 * ``medium_model``: the model in use (``auto``'s choice once it has decided; ``seathru``
@@ -220,6 +222,10 @@ def medium_report(
             values["B_inf"] = torch.where(factor > 0, values["B_inf"] / factor.clamp_min(1e-12), values["B_inf"])
     report["beta_D"] = _numbers(values["beta_D"])
     report["beta_B"] = _numbers(values["beta_B"])
+    surface_veil = getattr(getattr(model, "medium_field", None), "surface_veil", None)
+    if scope == "scene" and surface_veil is not None and bool((surface_veil < 1).any()):
+        report["B_inf_open_water"] = _numbers(values["B_inf"])
+        values["B_inf"] = values["B_inf"] * surface_veil.detach().double().cpu()
     report["B_inf"] = _numbers(values["B_inf"])
     report["attenuation_length"] = [1.0 / b if b > 0 else None for b in report["beta_D"]]
     report["fit"] = _fit(model, values["beta_D"])

@@ -39,6 +39,7 @@ from seathru_nerfstudio.medium_choice import UNDECIDED, AutoMediumChoice
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumField, MediumOutputs, SceneMedium, blend_media, clear_medium
 from seathru_nerfstudio.medium_field import level_axes, level_components, sin_elevation, tie
 from seathru_nerfstudio.medium_start import OpenWaterColour, apply_density_caps
+from seathru_nerfstudio.surface_veil import SurfaceVeil
 from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY, VERTICAL_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
@@ -79,6 +80,7 @@ class SeathruModel(NerfactoModel):
         """:func:`~seathru_nerfstudio.medium_field.level_axes` of :attr:`vertical`: where the open rays look round the horizon."""
         self.medium_field = self._build_medium(metadata)
         self.open_water_colour = OpenWaterColour()  # the first stage's open rays: the veil from its end on
+        self.surface_veil_reader = SurfaceVeil()  # the surface rays before the fit: the veil in front of them
         code = UNDECIDED if self.config.medium_model == "auto" else MEDIUM_MODELS.index(self.config.medium_model)
         self.register_buffer("medium_model_code", torch.tensor(code, dtype=torch.long))
         """Index in ``MEDIUM_MODELS`` of the model in use (``UNDECIDED``: ``auto`` before its decision)."""
@@ -253,7 +255,7 @@ class SeathruModel(NerfactoModel):
             object_rgb=field_outputs[FieldHeadNames.RGB], object_density=field_outputs[FieldHeadNames.DENSITY],
             starts=ray_samples.frustums.starts, deltas=ray_samples.deltas, medium_rgb=medium.rgb,
             sigma_attn=medium.sigma_attn, sigma_bs=medium.sigma_bs, quadrature=self.config.quadrature,
-            veil_from_open_rays=True, veil_gain=veil_gain,
+            veil_from_open_rays=True, veil_gain=veil_gain, surface_veil=self._surface_veil(medium.rgb),
         )
         outputs = self._collect_outputs(ray_bundle, ray_samples, weights_list, ray_samples_list, render, medium, geometry)
         if self.training and self.phases.backscatter_excess_active and not self.object_frozen:
@@ -268,9 +270,15 @@ class SeathruModel(NerfactoModel):
                 sigma_bs=medium.sigma_bs,
                 quadrature=self.config.quadrature,
                 veil_gain=veil_gain,
+                surface_veil=self._surface_veil(medium.rgb),
             )
             outputs["backscatter_geometry_held"] = held.backscatter
         return outputs
+
+    def _surface_veil(self, medium_rgb: torch.Tensor) -> Optional[torch.Tensor]:
+        """The scene medium's veil in front of the surfaces over the open water's (:mod:`~seathru_nerfstudio.surface_veil`), per ray."""
+        share = getattr(self.medium_field, "surface_veil", None)
+        return None if share is None else share.to(medium_rgb).expand_as(medium_rgb)
 
     def medium(self, directions: torch.Tensor) -> MediumOutputs:
         """The medium of rays with these unit directions as rendered now: the model in use (tied, or
@@ -371,6 +379,8 @@ class SeathruModel(NerfactoModel):
         if self.training and self.object_frozen and not no_geometry_yet and self.phases.reads_open_water:
             past_last = outputs["transmittance"][..., -1, :] - outputs["weights_list"][-1][..., -1, :]  # T past the last sample
             self.open_water_colour.add(image, past_last, outputs["direction_up"], outputs["direction_level"])
+        if self.training and self.veil_held and self.phases.reads_surface_veil:
+            self.surface_veil_reader.add(image, outputs["medium_rgb"], outputs["depth"], outputs["accumulation"])
         prior_weight = self.phases.binary_prior_weight
         if self.training and prior_weight > 0 and not self.clear_air and not no_geometry_yet:
             loss_dict["binary_prior_loss"] = prior_weight * binary_transmittance_loss(

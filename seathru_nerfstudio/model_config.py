@@ -47,6 +47,8 @@ class ResearchConfig(PrintableConfig):
     """``auto``: thresholds of the decision (:mod:`seathru_nerfstudio.medium_choice`)."""
     medium_fit_max_log_error: float = 0.35
     """A channel keeps its trained densities where the fit's standard error of ``ln β_D`` is above this."""
+    surface_veil_optical_depth: Optional[float] = 3.0
+    """The veil in front of the surfaces is read from those at least this optical depth away (``None``: one veil)."""
     medium_init_density: float = 0.5
     """Starting densities per scene unit where ``medium_init_optical_depth`` cannot apply (no SfM depths)."""
     backscatter_excess_mult: float = 10.0
@@ -151,6 +153,10 @@ class SeathruModelConfig(NerfactoModelConfig):
         for path_name, path in (("medium-oracle", research.medium_oracle), ("medium-fit-oracle", research.medium_fit_oracle)):
             if path is not None and not Path(path).is_file():
                 raise InputError(f"--pipeline.model.research.{path_name}: {path} does not exist")
+        if research.surface_veil_optical_depth is not None and not research.surface_veil_optical_depth > 0:
+            raise InputError(
+                f"--pipeline.model.research.surface-veil-optical-depth must be > 0 or None (got {research.surface_veil_optical_depth})"
+            )
         if not research.medium_fit_max_log_error > 0:  # NaN fails too
             raise InputError(f"--pipeline.model.research.medium-fit-max-log-error must be > 0 (got {research.medium_fit_max_log_error})")
         early = research.binary_prior_early_mult

@@ -57,6 +57,15 @@ class TrainingPhases:
         return self.first_stage and self.step >= self.config.medium_first_steps // 2
 
     @property
+    def reads_surface_veil(self) -> bool:
+        """From half way between the first stage's end and ``medium_fit_step`` up to the fit: the rays that end
+        on a surface are counted for the veil in front of the surfaces (:mod:`seathru_nerfstudio.surface_veil`)."""
+        fit_step = self.config.medium_fit_step
+        if self.step is None or fit_step is None or self.config.research.surface_veil_optical_depth is None:
+            return False
+        return (self.config.medium_first_steps + fit_step) // 2 <= self.step < fit_step
+
+    @property
     def after_first_stage(self) -> bool:
         """In training, once a first stage is over (the veiling light read there is held)."""
         first = self.config.medium_first_steps

@@ -46,6 +46,10 @@ the backscatter of a homogeneous medium whose veil is ``B∞ G``, ``G = sigma_bs
 backscatter density is ``sigma_bs / G``. Its rate at the camera, ``B∞ sigma_bs``, is the same in
 every direction; only the veil, the far water, brightens looking up (:func:`depth_lit_backscatter_density`).
 
+The open water can be brighter than the veil the surfaces fade to (:mod:`seathru_nerfstudio.surface_veil`): with
+``surface_veil = r`` (per channel, ``<= 1``) a surface is seen through ``r B∞ (1 - e^{-sigma_bs z})``, and the open
+water's excess ``(1 - r) B∞`` reaches a ray only past all matter, weighted by ``e^{-tau_N}``.
+
 All maths runs in float32 with autocast disabled, so fp16/bf16 inputs give finite outputs.
 """
 
@@ -163,6 +167,7 @@ def render_seathru(
     quadrature: Quadrature = "analytic",
     veil_from_open_rays: bool = False,
     veil_gain: Float[Tensor, "*batch 3"] | None = None,
+    surface_veil: Float[Tensor, "*batch 3"] | None = None,
 ) -> SeathruRender:
     """Render rays through an object field in a per-ray homogeneous medium (sec. 4.3).
 
@@ -178,6 +183,12 @@ def render_seathru(
     ``veil_gain`` (``G >= 1``, per ray and channel): ``medium_rgb`` is the level veil times ``G``, the
     far water brighter looking up; the backscatter density is then ``sigma_bs / G``
     (:func:`depth_lit_backscatter_density`), so only the far water brightens. ``None``: ``G = 1``.
+
+    ``surface_veil`` (``r`` in ``[0, 1]``, per ray and channel): the veil in front of the surfaces is
+    ``r c_med``, and the rest of the open water's veil, ``(1 - r) c_med``, reaches a ray only past all
+    matter: ``backscatter = c_med (r (1 - e^{-sigma_bs t}) + (1 - r) e^{-tau_N})`` in the closed form, so an
+    open ray shows ``c_med`` and one that ends on an opaque surface at ``z`` shows
+    ``r c_med (1 - e^{-sigma_bs z})`` (:mod:`seathru_nerfstudio.surface_veil`). ``None``: ``r = 1``.
     """
     if quadrature not in ("analytic", "paper"):
         raise ValueError(f"unknown quadrature {quadrature!r}; expected 'analytic' or 'paper'")
@@ -223,7 +234,11 @@ def render_seathru(
         if veil_from_open_rays:
             open_share = torch.exp(-tau_end[..., 0, :]).detach()  # [..., 1]
             veil = veil * open_share + veil.detach() * (1.0 - open_share)
-        backscatter = (head + inside + tail) * veil
+        medium_share = head + inside + tail
+        if surface_veil is not None:
+            share = surface_veil.to(dtype).clamp(0.0, 1.0)
+            medium_share = share * medium_share + (1.0 - share) * torch.exp(-tau_end[..., 0, :])
+        backscatter = medium_share * veil
 
         clean = torch.sum(weights * c_obj, dim=-2)
         accumulation = one_minus_exp(tau_end[..., 0, :])

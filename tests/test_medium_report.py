@@ -60,6 +60,12 @@ def test_medium_report_units_ties_fit_and_directions(tmp_path):
     torch.testing.assert_close(torch.tensor(across["B_inf_across"]["level_axes"], dtype=torch.float64), torch.eye(3)[:2].double())
     assert (across["B_inf_across"]["mean"], across["B_inf_across"]["low"]) == (pytest.approx([0.2, 0.9]), pytest.approx([-0.5, 0.7]))
 
+    assert "B_inf_open_water" not in across  # one veil
+    water.medium_field.surface_veil.copy_(torch.tensor([0.8, 0.9, 1.0]))  # the surfaces' veil below the open water's
+    two = medium_report.medium_report(water)
+    assert two["B_inf_open_water"] == pytest.approx(level.tolist(), rel=1e-5)
+    assert two["B_inf"] == pytest.approx((level * torch.tensor([0.8, 0.9, 1.0])).tolist(), rel=1e-5)
+
     ray = tiny_model(medium_model="seathru", medium_scope="ray").eval()
     report = medium_report.medium_report(ray, view_directions=torch.tensor([[0.0, 0.0, -1.0]]))
     grid = medium_report.direction_grid()

@@ -122,8 +122,11 @@ def evaluate(pipeline, lpips, scale: float, truth) -> Dict[str, Any]:
     if hasattr(model, "backscatter_veil_sensitivity") and bool((model.fit_backscatter_log_error >= 0).all()):
         record["beta_B_per_B_inf"] = [float(v) for v in model.backscatter_veil_sensitivity]  # at the medium fit
     if all(media.values()):
+        # B∞ of the formation model is the veil in front of the surfaces (seathru_nerfstudio.surface_veil).
+        surface_veil = getattr(getattr(model, "medium_field", None), "surface_veil", None)
+        share = torch.ones(3) if surface_veil is None else surface_veil.detach().float().cpu()
         predicted = scoring.medium_per_metre(
-            torch.cat(media["medium_rgb"]),
+            torch.cat(media["medium_rgb"]) * share,
             torch.cat(media["medium_attenuation"]),
             torch.cat(media["medium_backscatter"]),
             scale,
