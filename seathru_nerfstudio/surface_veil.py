@@ -17,7 +17,9 @@ median of their colour over the veil they are rendered with, among those whose o
 fitted attenuation is at least ``min_optical_depth``. Rays are binned by range and by that ratio, so the
 attenuation can be chosen after they are counted. Where fewer than :data:`MIN_SURFACE_SHARE` of the surface
 rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's).
-On scenes drawn with the formation model every surface's colour is at or above its veil, so ``r = 1``.
+On scenes drawn with the formation model a deep surface's colour is at or above its veil where ``β_B >= β_D``; where
+``β_B < β_D`` it can fall short by up to ``e^{-β_B z}`` (water demo, true range: green's deep pixels 0.93 of the veil, but
+0.2% of the pixels, under the floor), so there ``r`` stays 1 only while such surfaces are few.
 """
 
 from __future__ import annotations
@@ -43,10 +45,11 @@ RATIO_BINS = 200
 RATIO_TOP = 2.0
 
 
-def nearest_ranges() -> Float[Tensor, "R"]:
-    """The nearest range of each range bin, scene units."""
+def deep_bins(attenuation: float, min_optical_depth: float) -> Float[Tensor, "R"]:
+    """The range bins whose nearest range (scene units) times ``attenuation`` (per scene unit) is at least ``min_optical_depth``."""
     low, high = LOG_RANGE_SPAN
-    return torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS, dtype=torch.float64) / RANGE_BINS)
+    nearest = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS, dtype=torch.float64) / RANGE_BINS)
+    return attenuation * nearest >= min_optical_depth
 
 
 class SurfaceVeil(torch.nn.Module):
@@ -92,11 +95,10 @@ class SurfaceVeil(torch.nn.Module):
         """``r`` per channel (module docstring): the median colour / veil over the bins whose nearest range
         times ``attenuation`` (per scene unit) is at least ``min_optical_depth``, at most 1; 1 where under
         :data:`MIN_SURFACE_SHARE` of the surface rays are in those bins."""
-        nearest = nearest_ranges()
         total = float(self.counts[:, 0, :].sum())
         out = torch.ones(3, dtype=torch.float64)
         for c in range(3):
-            deep = float(attenuation[c]) * nearest >= min_optical_depth
+            deep = deep_bins(float(attenuation[c]), min_optical_depth)
             histogram = self.counts[deep, c, :].sum(dim=0)
             count = float(histogram.sum())
             if total <= 0 or count < MIN_SURFACE_SHARE * total:
@@ -107,12 +109,11 @@ class SurfaceVeil(torch.nn.Module):
 
     def deep_share(self, attenuation: Float[Tensor, "3"], min_optical_depth: float) -> Float[Tensor, "3"]:
         """The share of the surface rays, per channel, that :meth:`ratio` reads (0 where none were counted)."""
-        nearest = nearest_ranges()
         per_bin = self.counts[:, 0, :].sum(dim=-1)
         total = float(per_bin.sum())
         if total <= 0:
             return torch.zeros(3, dtype=torch.float64)
-        return torch.stack([per_bin[float(attenuation[c]) * nearest >= min_optical_depth].sum() / total for c in range(3)])
+        return torch.stack([per_bin[deep_bins(float(attenuation[c]), min_optical_depth)].sum() / total for c in range(3)])
 
     def get_extra_state(self) -> Float[Tensor, "N"]:
         return self.counts.reshape(-1).clone()
