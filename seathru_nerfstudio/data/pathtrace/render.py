@@ -9,6 +9,7 @@ older one aborts the process inside the compiler, so it is never picked.
 
 from __future__ import annotations
 
+import gc
 import glob
 import os
 import re
@@ -105,6 +106,12 @@ class Renderer:
         self.K = intrinsics(width, height)
 
     def close(self) -> None:
+        """Free the Mitsuba scenes and medium now (with their meshes' folder). Left to the garbage
+        collector, Dr.Jit objects can be destroyed in the middle of a later renderer's render,
+        which then finds a freed pointer in the JIT registry ("pointer is not registered")."""
+        self.scenes.clear()
+        self.medium = None
+        gc.collect()
         self._folder.cleanup()
 
     def render_mode(self, mode: Mode, c2w: npt.NDArray[np.float64], seed: int) -> npt.NDArray[np.float32]:
