@@ -1,4 +1,4 @@
-"""``seathru-process-data`` as users run it (subprocess): bad input gets a clear message and
+"""``seathru-process-data`` as users run it (a process of its own): bad input gets a clear message and
 a non-zero exit, nothing half-written, and the input folder is never touched."""
 
 from __future__ import annotations
@@ -6,8 +6,7 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import subprocess
-import sys
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -18,13 +17,15 @@ from seathru_nerfstudio.data import process as process_module
 from seathru_nerfstudio.data.process import ProcessDataError, ProcessSeathruData, process
 from seathru_nerfstudio.data.sfm import SfmError
 
-SCRIPT = Path(sys.executable).with_name("seathru-process-data")
+import forked_cli
 
-
-def run_cli(*args: str | Path) -> subprocess.CompletedProcess:
-    command = [str(SCRIPT)] if SCRIPT.is_file() else [sys.executable, "-m", "seathru_nerfstudio.data.process"]
-    result = subprocess.run(command + [str(a) for a in args], capture_output=True, text=True, timeout=300)
-    result.message = " ".join((result.stdout + result.stderr).split())  # rich wraps long lines
+def run_cli(*args: str | Path) -> forked_cli.Result:
+    """``seathru-process-data *args`` in a process of its own (``forked_cli``: its imports are paid
+    once per test run, not per call), from a working folder of its own; ``message`` is its output
+    on one line (rich wraps long lines)."""
+    with tempfile.TemporaryDirectory(prefix="process-data-cwd-") as cwd:
+        result = forked_cli.run("seathru-process-data", *args, cwd=Path(cwd), timeout_s=300)
+    result.message = " ".join(result.output.split())
     return result
 
 
