@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import re
 import sys
+import tempfile
 import time
 from dataclasses import dataclass
 from importlib.metadata import entry_points
@@ -126,3 +127,11 @@ def run(command: str, *args, cwd: Path, timeout_s: float = 120.0) -> Result:
     output = ANSI.sub("", log.read_text(errors="replace")) if log.exists() else ""
     log.unlink(missing_ok=True)
     return Result(returncode=returncode, output=output, stray=stray_after(tag))
+
+
+def run_in_a_folder_of_its_own(command: str, *args, timeout_s: float = 120.0) -> Result:
+    """:func:`run` from a temporary working folder, removed after it: nothing of the run (its log,
+    a file written to a relative path) lands beside the caller's folders."""
+    with tempfile.TemporaryDirectory(prefix=f"{command}-cwd-") as cwd:
+        return run(command, *args, cwd=Path(cwd), timeout_s=timeout_s)
+

@@ -6,7 +6,6 @@ from __future__ import annotations
 import hashlib
 import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import cv2
@@ -21,10 +20,8 @@ import forked_cli
 
 def run_cli(*args: str | Path) -> forked_cli.Result:
     """``seathru-process-data *args`` in a process of its own (``forked_cli``: its imports are paid
-    once per test run, not per call), from a working folder of its own; ``message`` is its output
-    on one line (rich wraps long lines)."""
-    with tempfile.TemporaryDirectory(prefix="process-data-cwd-") as cwd:
-        result = forked_cli.run("seathru-process-data", *args, cwd=Path(cwd), timeout_s=300)
+    once per test run, not per call); ``message`` is its output on one line (rich wraps long lines)."""
+    result = forked_cli.run_in_a_folder_of_its_own("seathru-process-data", *args, timeout_s=300)
     result.message = " ".join(result.output.split())
     return result
 

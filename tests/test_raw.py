@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import tempfile
 from pathlib import Path
 
 import cv2  # before anything that loads pycolmap (see seathru_nerfstudio/data/sfm.py)
@@ -85,13 +84,6 @@ def interior(image: np.ndarray) -> np.ndarray:
 
 def tree_hash(folder: Path) -> dict[str, str]:
     return {p.name: hashlib.sha256(p.read_bytes()).hexdigest() for p in sorted(folder.iterdir())}
-
-
-def process_data_cli(*args) -> forked_cli.Result:
-    """``seathru-process-data *args`` in a process of its own (``forked_cli``), from a working
-    folder of its own, so that nothing of the run lands beside the test's folders."""
-    with tempfile.TemporaryDirectory(prefix="process-data-cwd-") as cwd:
-        return forked_cli.run("seathru-process-data", *args, cwd=Path(cwd), timeout_s=300)
 
 
 def test_pidng_dng_is_read_back_by_rawpy(tmp_path: Path) -> None:
@@ -216,7 +208,9 @@ def test_corrupt_raw_is_skipped_with_a_warning_and_listed(tmp_path: Path) -> Non
         write_bayer_dng(data / f"good_{i}.dng", smooth_linear_image(20 + i))
     (data / "bad.dng").write_bytes(b"\x00garbage" * 64)
     before = tree_hash(data)
-    run = process_data_cli("--data", data, "--output-dir", tmp_path / "out", "--skip-sfm")
+    run = forked_cli.run_in_a_folder_of_its_own(
+        "seathru-process-data", "--data", data, "--output-dir", tmp_path / "out", "--skip-sfm", timeout_s=300
+    )
     assert run.returncode == 0, run.output
     assert "bad.dng" in run.output and "Warning" in run.output
     assert sorted(p.name for p in (tmp_path / "out" / "images").iterdir()) == ["good_0.png", "good_1.png"]
@@ -228,7 +222,9 @@ def test_all_raws_corrupt_is_an_error(tmp_path: Path) -> None:
     data.mkdir()
     for name in ("a.NEF", "b.CR2"):
         (data / name).write_bytes(b"junk" * 100)
-    run = process_data_cli("--data", data, "--output-dir", tmp_path / "out", "--skip-sfm")
+    run = forked_cli.run_in_a_folder_of_its_own(
+        "seathru-process-data", "--data", data, "--output-dir", tmp_path / "out", "--skip-sfm", timeout_s=300
+    )
     assert run.returncode != 0
     assert "none of the 2 files" in run.output and "a.NEF" in run.output
     assert not (tmp_path / "out").exists()
