@@ -41,6 +41,8 @@ class Result:
     output: str
     stray: List[str]
     """Processes of this run still alive after it ended (``pid cmdline``)."""
+    stdout: str = ""
+    """Its standard output alone, where :func:`run` was asked to keep the streams apart (else "")."""
 
     def error_lines(self) -> List[str]:
         return [line for line in self.output.splitlines() if line.startswith("Error:")]
@@ -51,14 +53,15 @@ def _entry(command: str):
     return found.load()
 
 
-def _main(command: str, args: Sequence[str], cwd: str, log: str, tag: str) -> None:
-    """The forked child: the command's entry point, its output in ``log``."""
+def _main(command: str, args: Sequence[str], cwd: str, log: str, tag: str, error_log: str = "") -> None:
+    """The forked child: the command's entry point, its output in ``log`` (its standard error in
+    ``error_log`` where one is given)."""
     os.chdir(cwd)
     handle = os.open(log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
     sys.stdout.flush()
     sys.stderr.flush()
     os.dup2(handle, 1)
-    os.dup2(handle, 2)
+    os.dup2(os.open(error_log, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644) if error_log else handle, 2)
     os.environ[MARKER] = tag
     os.environ["PYTHONWARNINGS"] = "ignore"
     sys.argv = [command, *args]
@@ -106,16 +109,19 @@ def stray_after(tag: str, grace_s: float = 10.0) -> List[str]:
 _context = None
 
 
-def run(command: str, *args, cwd: Path, timeout_s: float = 120.0) -> Result:
+def run(command: str, *args, cwd: Path, timeout_s: float = 120.0, streams_apart: bool = False) -> Result:
     """``command *args`` in ``cwd`` (see the module docstring); a run past ``timeout_s`` is killed
-    and reported with return code -9."""
+    and reported with return code -9. ``streams_apart``: standard output and error go to two files,
+    ``Result.stdout`` holds the first and ``output`` the first followed by the second."""
     global _context
     if _context is None:
         _context = multiprocessing.get_context("forkserver")
         _context.set_forkserver_preload(PRELOAD)
     tag = f"{os.getpid()}-{time.monotonic_ns()}"
     log = Path(cwd) / f".{command}-{tag}.log"
-    process = _context.Process(target=_main, args=(command, [str(a) for a in args], str(cwd), str(log), tag))
+    error_log = log.with_suffix(".err") if streams_apart else None
+    arguments = (command, [str(a) for a in args], str(cwd), str(log), tag, str(error_log or ""))
+    process = _context.Process(target=_main, args=arguments)
     process.start()
     process.join(timeout_s)
     if process.is_alive():
@@ -124,14 +130,17 @@ def run(command: str, *args, cwd: Path, timeout_s: float = 120.0) -> Result:
         returncode = -9
     else:
         returncode = process.exitcode
-    output = ANSI.sub("", log.read_text(errors="replace")) if log.exists() else ""
-    log.unlink(missing_ok=True)
-    return Result(returncode=returncode, output=output, stray=stray_after(tag))
+    texts = []
+    for path in (log, error_log) if error_log else (log,):
+        texts.append(ANSI.sub("", path.read_text(errors="replace")) if path.exists() else "")
+        path.unlink(missing_ok=True)
+    stdout = texts[0] if error_log else ""
+    return Result(returncode=returncode, output="".join(texts), stray=stray_after(tag), stdout=stdout)
 
 
-def run_in_a_folder_of_its_own(command: str, *args, timeout_s: float = 120.0) -> Result:
+def run_in_a_folder_of_its_own(command: str, *args, timeout_s: float = 120.0, streams_apart: bool = False) -> Result:
     """:func:`run` from a temporary working folder, removed after it: nothing of the run (its log,
     a file written to a relative path) lands beside the caller's folders."""
     with tempfile.TemporaryDirectory(prefix=f"{command}-cwd-") as cwd:
-        return run(command, *args, cwd=Path(cwd), timeout_s=timeout_s)
+        return run(command, *args, cwd=Path(cwd), timeout_s=timeout_s, streams_apart=streams_apart)
 

@@ -209,10 +209,10 @@ def test_corrupt_raw_is_skipped_with_a_warning_and_listed(tmp_path: Path) -> Non
     (data / "bad.dng").write_bytes(b"\x00garbage" * 64)
     before = tree_hash(data)
     run = forked_cli.run_in_a_folder_of_its_own(
-        "seathru-process-data", "--data", data, "--output-dir", tmp_path / "out", "--skip-sfm", timeout_s=300
+        "seathru-process-data", "--data", data, "--output-dir", tmp_path / "out", "--skip-sfm", timeout_s=300, streams_apart=True
     )
     assert run.returncode == 0, run.output
-    assert "bad.dng" in run.output and "Warning" in run.output
+    assert "bad.dng" in run.stdout and "Warning" in run.stdout
     assert sorted(p.name for p in (tmp_path / "out" / "images").iterdir()) == ["good_0.png", "good_1.png"]
     assert tree_hash(data) == before
 
@@ -223,9 +223,9 @@ def test_all_raws_corrupt_is_an_error(tmp_path: Path) -> None:
     for name in ("a.NEF", "b.CR2"):
         (data / name).write_bytes(b"junk" * 100)
     run = forked_cli.run_in_a_folder_of_its_own(
-        "seathru-process-data", "--data", data, "--output-dir", tmp_path / "out", "--skip-sfm", timeout_s=300
+        "seathru-process-data", "--data", data, "--output-dir", tmp_path / "out", "--skip-sfm", timeout_s=300, streams_apart=True
     )
     assert run.returncode != 0
-    assert "none of the 2 files" in run.output and "a.NEF" in run.output
+    assert "none of the 2 files" in run.stdout and "a.NEF" in run.stdout
     assert not (tmp_path / "out").exists()
     assert sorted(p.name for p in tmp_path.iterdir()) == ["raw"]  # no half-built sibling either
