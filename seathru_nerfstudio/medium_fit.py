@@ -39,9 +39,14 @@ import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
 
+from nerfstudio.utils.rich_utils import CONSOLE
+
 from seathru_nerfstudio.medium_field import tie_matrix
 from seathru_nerfstudio.medium_fit_errors import LOG_DENSITY_LIMIT, log_density_errors, tied_log_density_errors
 from seathru_nerfstudio.metadata_keys import SFM_OBSERVATIONS_KEY
+from seathru_nerfstudio.oracles import replace_with_truth
+from seathru_nerfstudio.phases import TrainingPhases
+from seathru_nerfstudio.surface_veil import read_surface_veil
 
 
 CAUCHY_TUNING = 2.385
@@ -357,3 +362,75 @@ def fit_model_medium(model: Any, table: Any, tie: str) -> tuple[Tensor, Tensor, 
     )
     model.last_medium_fit = (tie, densities, veil, fit)
     return densities, veil, fit
+
+
+def apply_medium_fit(model: Any, step: int, optimizers: Any = None) -> None:
+    """The ``medium_fit_step`` callback: replace the scene medium's densities by
+    :func:`fit_densities` on the dataparser's SfM observation table, under the veiling light learned
+    so far, tied as the medium model in use renders them, and hold them from then on
+    (``model.densities_fitted``), moving from the trained values to the fit in log space over
+    ``research.auto_blend_steps`` (:meth:`~seathru_nerfstudio.medium_field.SceneMedium.move_to_fit`).
+    Set at once, the fit's change of the image emptied the object field within 15 steps on
+    path-traced coastal water (opacity 0.65 → 0.14–0.19 on three runs of seed 42, depth error 0.1 →
+    0.9–1.5; 0.63 with the move; docs/history.md, 2026-11-29). A channel the fit is uncertain about
+    (standard error of ``ln β_D`` above ``research.medium_fit_max_log_error``; :func:`fit_replaces`)
+    keeps its trained densities and trains on.
+    ``optimizers``: the trainer's, whose ``medium_density`` Adam state is cleared."""
+    config = model.config
+    after_fit = step - (config.medium_fit_step or 0) + 1  # 0 at the fit's own step (its last, 499)
+    if model.fits_medium and 0 < after_fit <= config.research.auto_blend_steps:  # the held densities move to the fit
+        model.medium_field.move_to_fit(after_fit / max(config.research.auto_blend_steps, 1), model.densities_fitted.cpu())
+    if not (model.fits_medium and TrainingPhases(config, step).ends(config.medium_fit_step)):
+        return
+    table = sfm_observation_table(model)
+    if table is None:
+        CONSOLE.print(
+            f"[bold yellow]seathru step {step}: no SfM observations to fit the medium to (no SfM depth maps or "
+            "COLMAP tracks); the densities train on"
+        )
+        return
+    if model.medium_model == "none":
+        CONSOLE.print(f"[bold]seathru step {step}: no medium to fit (medium model none)")
+        return
+    medium = model.medium_field
+    densities, veil, fit = fit_model_medium(model, table, tie=model.medium_model)
+    surface_veil = read_surface_veil(model, fit.attenuation, step)
+    if surface_veil is not None:  # the fit again, under the veil in front of the surfaces
+        veil = veil * surface_veil
+        fit = fit_densities(
+            torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit.attenuation, fit.backscatter,
+            tie=model.medium_model,
+        )
+    model.fit_log_error.copy_(fit.attenuation_log_error.to(model.fit_log_error))
+    model.fit_backscatter_log_error.copy_(fit.backscatter_log_error.to(model.fit_backscatter_log_error))
+    sensitivity = veil_sensitivity(torch.from_numpy(table.ranges), torch.from_numpy(table.colours), veil, fit, model.medium_model)
+    model.backscatter_veil_sensitivity.copy_(torch.nan_to_num(sensitivity, nan=0.0, posinf=0.0, neginf=0.0).to(model.backscatter_veil_sensitivity))
+    uncertain = ~fit_replaces(fit, config.research.medium_fit_max_log_error)
+    show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+    if uncertain.all() and model.fit_oracle is None:  # nothing to replace: leave the parameters and Adam alone
+        CONSOLE.print(
+            f"[bold]seathru step {step}: medium fit to {table.num_observations} SfM observations kept the trained "
+            f"densities: the fit is imprecise (standard error of ln beta_D {show(fit.attenuation_log_error)} above "
+            f"{config.research.medium_fit_max_log_error:g}; fitted beta_D {show(fit.attenuation)} /m)"
+        )
+        return
+    beta_d = torch.where(uncertain, densities[:3], fit.attenuation)
+    beta_b = torch.where(uncertain, densities[3:], fit.backscatter)
+    replaced = torch.cat([~uncertain, ~uncertain])
+    if model.fit_oracle is not None:  # diagnostic: the truth in place of the fit, held like it
+        parts = config.research.medium_fit_oracle_parts
+        beta_d, beta_b, replaced = replace_with_truth(model.fit_oracle, parts, beta_d, beta_b, ~uncertain)
+        CONSOLE.print(f"[bold]seathru step {step}: medium_fit_oracle: the true densities ({parts}) replace the fit")
+    fitted = torch.cat([beta_d, beta_b]) / model.world_scale
+    medium.start_move_to_fit(fitted, surface_veil)  # reached after auto_blend_steps
+    if optimizers is not None and "medium_density" in optimizers.optimizers:
+        optimizers.optimizers["medium_density"].state.clear()  # Adam's moments were for the old values
+    model.densities_fitted.copy_(replaced.to(model.densities_fitted.device))
+    CONSOLE.print(
+        f"[bold]seathru step {step}: medium fitted to {table.num_observations} SfM observations ({model.medium_model} tie)[/] "
+        f"(residual {fit.residual:.3g}): beta_D {show(densities[:3])} -> {show(beta_d)} /m, "
+        f"beta_B {show(densities[3:])} -> {show(beta_b)} /m, under B_inf {show(veil)}; "
+        f"standard error of ln beta_D {show(fit.attenuation_log_error)}, of ln beta_B {show(fit.backscatter_log_error)}; "
+        f"beta_B moves {show(sensitivity)} times any relative error of B_inf"
+        + (f", kept the trained values of channel(s) {uncertain.nonzero().flatten().tolist()}" if uncertain.any() else "")
+    )

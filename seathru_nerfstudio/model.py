@@ -39,7 +39,7 @@ from seathru_nerfstudio.medium_choice import UNDECIDED, AutoMediumChoice
 from seathru_nerfstudio.medium_field import MEDIUM_MODELS, MediumField, MediumOutputs, SceneMedium, blend_media, clear_medium
 from seathru_nerfstudio.medium_field import level_axes, level_components, sin_elevation, tie
 from seathru_nerfstudio.medium_start import OpenWaterColour, apply_density_caps
-from seathru_nerfstudio.medium_fit_step import apply_medium_fit
+from seathru_nerfstudio.medium_fit import apply_medium_fit
 from seathru_nerfstudio.metadata_keys import RANGE_SPREAD_KEY, SCALE_KEY, VERTICAL_KEY
 from seathru_nerfstudio.model_config import ResearchConfig, SeathruModelConfig
 from seathru_nerfstudio.object_field import FixedDirectionEncoding, scene_collider, scene_contraction_radius, set_contraction

@@ -21,9 +21,7 @@ The timeline of a medium model (defaults in brackets)::
   under the veiling light learned so far (:mod:`seathru_nerfstudio.medium_fit`) and held from then on,
   moving from their trained values to the fit over ``research.auto_blend_steps``.
   Up to this step the binary prior has its strong early weight (the open water stays empty while
-  the veiling light is read), afterwards the paper's λ. The veil in front of the surfaces is read at the
-  fit from the surface rays of steps 350-500, and at 850 from those of 700-850 for a channel that had too
-  few surfaces deep in the water (:mod:`seathru_nerfstudio.surface_veil`).
+  the veiling light is read), afterwards the paper's λ.
 * ``research.auto_blend_steps`` (200): after a decision other than ``seathru`` or ``none``, the
   medium moves linearly to the chosen model while the object density is held.
 * ``research.backscatter_excess_steps`` (500): the backscatter excess loss applies before this.
@@ -59,29 +57,13 @@ class TrainingPhases:
         return self.first_stage and self.step >= self.config.medium_first_steps // 2
 
     @property
-    def surface_veil_windows(self) -> tuple[tuple[int, int], ...]:
-        """The ``[start, end)`` steps in which the rays that end on a surface are counted for the veil in front
-        of the surfaces (:mod:`seathru_nerfstudio.surface_veil`), each read at its last step: from half way
-        between the first stage's end and ``medium_fit_step`` up to the fit, and again, as long, from the end
-        of the move to the fit, for a channel the first reading found too few deep surfaces for. Empty
-        without a fit or with the reading off."""
-        fit_step = self.config.medium_fit_step
-        if fit_step is None or self.config.research.surface_veil_optical_depth is None:
-            return ()
-        first_start = (self.config.medium_first_steps + fit_step) // 2
-        again = fit_step + max(self.config.research.auto_blend_steps, 0)
-        return (first_start, fit_step), (again, again + fit_step - first_start)
-
-    @property
     def reads_surface_veil(self) -> bool:
-        """In one of :attr:`surface_veil_windows`."""
-        return self.step is not None and any(start <= self.step < end for start, end in self.surface_veil_windows)
-
-    @property
-    def rereads_surface_veil(self) -> bool:
-        """At the last step of the second of :attr:`surface_veil_windows`: the veil is read again."""
-        windows = self.surface_veil_windows
-        return len(windows) > 1 and self.ends(windows[1][1])
+        """From half way between the first stage's end and ``medium_fit_step`` up to the fit: the rays that end
+        on a surface are counted for the veil in front of the surfaces (:mod:`seathru_nerfstudio.surface_veil`)."""
+        fit_step = self.config.medium_fit_step
+        if self.step is None or fit_step is None or self.config.research.surface_veil_optical_depth is None:
+            return False
+        return (self.config.medium_first_steps + fit_step) // 2 <= self.step < fit_step
 
     @property
     def after_first_stage(self) -> bool:

@@ -16,9 +16,7 @@ that end on a surface (accumulation >= :data:`SURFACE_ACCUMULATION`) in the step
 median of their colour over the veil they are rendered with, among those whose optical depth under the
 fitted attenuation is at least ``min_optical_depth``. Rays are binned by range and by that ratio, so the
 attenuation can be chosen after they are counted. Where fewer than :data:`MIN_SURFACE_SHARE` of the surface
-rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's);
-a channel kept at 1 is read once more from the surface rays of a later window, when the object field has
-placed more of the far surfaces (:mod:`seathru_nerfstudio.medium_fit_step`).
+rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's).
 On scenes drawn with the formation model a deep surface's colour is at or above its veil where ``β_B >= β_D``; where
 ``β_B < β_D`` it can fall short by up to ``e^{-β_B z}`` (water demo, true range: green's deep pixels 0.93 of the veil, but
 0.2% of the pixels, under the floor), so there ``r`` stays 1 only while such surfaces are few.
@@ -88,10 +86,6 @@ class SurfaceVeil(torch.nn.Module):
             flat = (range_bin[:, None] * 3 + channel) * RATIO_BINS + ratio_bin
             self.counts += torch.bincount(flat.reshape(-1), minlength=self.counts.numel()).double().view_as(self.counts)
 
-    def clear(self) -> None:
-        """Forget every count (the counts of a window are spent once it is read)."""
-        self.counts.zero_()
-
     @property
     def surface_rays(self) -> int:
         """How many surface rays were counted."""
@@ -151,15 +145,11 @@ class SurfaceVeil(torch.nn.Module):
         return pooled
 
 
-def read_surface_veil(
-    model: Any, attenuation: Float[Tensor, "3"], step: int, read: Float[Tensor, "3"] | None = None
-) -> Float[Tensor, "3"] | None:
+def read_surface_veil(model: Any, attenuation: Float[Tensor, "3"], step: int) -> Float[Tensor, "3"] | None:
     """The veil in front of the surfaces over the open water's, per channel, read from the surface rays
-    counted in the window that ends at ``step`` (:class:`~seathru_nerfstudio.surface_veil.SurfaceVeil`;
-    its counts are then cleared) at the optical depth ``research.surface_veil_optical_depth`` under
-    ``attenuation`` (1/world unit). ``read``: the veil read before, whose channels under 1 are kept as they
-    are (``None``: none read). ``None`` where the result is 1 in every channel, the option is off, or the
-    medium is not the scene medium."""
+    counted before the fit (:class:`~seathru_nerfstudio.surface_veil.SurfaceVeil`) at the optical depth
+    ``research.surface_veil_optical_depth`` under ``attenuation`` (1/world unit); ``None`` where it is 1 in
+    every channel, the option is off, or the medium is not the scene medium."""
     min_optical_depth = model.config.research.surface_veil_optical_depth
     if min_optical_depth is None or not hasattr(model.medium_field, "surface_veil"):
         return None
@@ -167,17 +157,10 @@ def read_surface_veil(
     per_scene_unit = attenuation.double().cpu() / model.world_scale
     share = reader.ratio(per_scene_unit, min_optical_depth)
     deep = reader.deep_share(per_scene_unit, min_optical_depth)
-    counted = reader.surface_rays
-    model.surface_veil_reader.clear()
-    kept = torch.zeros(3, dtype=torch.bool) if read is None else read.detach().double().cpu() < 1
-    if read is not None:
-        share = torch.where(kept, read.detach().double().cpu(), share)
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
     CONSOLE.print(
         f"[bold]seathru step {step}: the veil in front of the surfaces is {show(share)} of the open water's[/] "
-        f"(median over the {show(deep)} of {counted} surface rays at optical depth >= {min_optical_depth:g}; "
-        "1 where under 1% are"
-        + (f"; channel(s) {kept.nonzero().flatten().tolist()} as read before" if bool(kept.any()) else "")
-        + ")"
+        f"(median over the {show(deep)} of {reader.surface_rays} surface rays at optical depth >= {min_optical_depth:g}; "
+        "1 where under 1% are)"
     )
     return share if bool((share < 1).any()) else None

@@ -307,7 +307,7 @@ def test_auto_decides_from_the_sfm_fit_and_the_fit_then_ties_as_chosen(warm_up, 
     observations, not from the warm-up; the fit that follows in the same step's callbacks
     (``medium_fit_step``) ties as the model chosen, and the densities reach it at the end of their
     move: ``fog`` one grey attenuation and a backscatter density per channel, each the truth."""
-    from seathru_nerfstudio.medium_fit_step import apply_medium_fit
+    from seathru_nerfstudio.medium_fit import apply_medium_fit
 
     model = decide_on_sfm_points(1, beta_d, beta_b, evidence(share=0.3, beta_D=warm_up, beta_B=(0.2, 0.1, 0.3), B_inf=(0.6,) * 3))
     assert model.medium_model == chosen

@@ -12,8 +12,7 @@ import torch
 
 from nerfstudio.data.scene_box import SceneBox
 
-from seathru_nerfstudio.medium_fit import fit_model_medium
-from seathru_nerfstudio.medium_fit_step import apply_medium_fit
+from seathru_nerfstudio.medium_fit import apply_medium_fit, fit_model_medium
 
 from tiny_training import rays, tiny_model
 

@@ -91,65 +91,9 @@ def test_the_surface_veil_moves_in_log_space_with_the_fitted_densities_and_loads
 
 
 @pytest.mark.parametrize("optical_depth", [3.0, None])
-def test_surface_rays_are_read_in_the_second_half_before_the_fit_and_again_after_the_move(optical_depth):
+def test_surface_rays_are_read_in_the_second_half_before_the_fit(optical_depth):
     config = SeathruModelConfig(medium_first_steps=200, medium_fit_step=500)
     config.research.surface_veil_optical_depth = optical_depth
-    reading = [step for step in range(0, 1200) if TrainingPhases(config, step).reads_surface_veil]
-    assert reading == ([] if optical_depth is None else list(range(350, 500)) + list(range(700, 850)))
-    rereading = [step for step in range(0, 1200) if TrainingPhases(config, step).rereads_surface_veil]
-    assert rereading == ([] if optical_depth is None else [849])
-    assert not TrainingPhases(config, None).reads_surface_veil and not TrainingPhases(config, None).rereads_surface_veil
-
-
-def test_a_channel_with_too_few_deep_surfaces_at_the_fit_is_read_again_after_the_move_and_refitted():
-    """At the fit no surface is deep, so one veil and the fit under it; in the second window red's deep
-    surfaces show 0.705 of the open water's veil: at its last step red is read, the densities are fitted
-    again under that veil (the SfM colours were drawn under it, so the refit is the truth) and move there,
-    with the veil, over ``auto_blend_steps``; green and blue stay at one veil. A second reading that finds
-    nothing new leaves everything where it is."""
-    import numpy as np
-
-    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY, SFM_OBSERVATIONS_KEY
-    from seathru_nerfstudio.data.sfm_observations import SfmObservations
-    from seathru_nerfstudio.medium_fit_step import apply_medium_fit
-
-    from tiny_training import tiny_model
-
-    rng = np.random.default_rng(1)
-    beta_d, beta_b = np.array([1.3, 1.2, 0.9]), np.array([0.95, 0.85, 0.7])  # per metre
-    ranges = rng.uniform(1.0, 3.0, (200, 1)) * rng.uniform(0.9, 1.1, (200, 6))
-    table = SfmObservations(ranges=ranges, colours=np.zeros((200, 6, 3)))
-    options = dict(medium_fit_step=10, medium_first_steps=5, auto_blend_steps=4)
-    models = [tiny_model(metadata={SCALE_KEY: 2.0, SFM_OBSERVATIONS_KEY: table}, **options) for _ in range(2)]
-    model, unread = models
-    assert TrainingPhases(model.config, 16).rereads_surface_veil  # windows [7, 10) and [14, 17)
-    veil = torch.sigmoid(model.medium_field.rgb_logit.detach().double())
-    share = torch.tensor([0.705, 1.0, 1.0], dtype=torch.float64)
-    surfaces = (veil * share).numpy()
-    table.colours[...] = rng.uniform(0.1, 1.0, (200, 1, 3)) * np.exp(-beta_d * ranges[..., None]) + surfaces * -np.expm1(
-        -beta_b * ranges[..., None]
-    )
-    for m in models:
-        apply_medium_fit(m, 9)  # the fit: nothing counted, one veil
-        assert torch.equal(m.medium_field.surface_veil_to, torch.ones(3)) and m.densities_fitted.all()
-        for step in range(10, 14):
-            apply_medium_fit(m, step)
-    first_fit = torch.nn.functional.softplus(model.medium_field.density_raw.detach().double()) * 2.0
-    assert abs(float(first_fit[3]) / beta_b[0] - 1.0) > 0.1  # under the open water's veil red beta_B misses
-    deep = torch.full((400, 1), 20.0)  # scene units: optical depth 13 in red under the first fit
-    colour = (veil * torch.tensor([0.705, 1.2, 1.2], dtype=torch.float64)).float().expand(400, 3)
-    model.surface_veil_reader.add(colour, veil.float().expand(400, 3), deep, torch.ones(400, 1))
-    for m in models:
-        apply_medium_fit(m, 16)
-    assert model.surface_veil_reader.surface_rays == 0  # spent
-    torch.testing.assert_close(model.medium_field.surface_veil_to, share.float())
-    apply_medium_fit(model, 18)  # half way: the geometric mean
-    torch.testing.assert_close(model.medium_field.surface_veil, share.sqrt().float())
-    for m in models:
-        for step in range(19, 24):
-            apply_medium_fit(m, step)
-    refit = torch.nn.functional.softplus(model.medium_field.density_raw.detach().double()) * 2.0
-    torch.testing.assert_close(refit, torch.tensor([*beta_d, *beta_b]), rtol=0.01, atol=0)
-    torch.testing.assert_close(model.medium_field.surface_veil, share.float())
-    held = torch.nn.functional.softplus(unread.medium_field.density_raw.detach().double()) * 2.0
-    assert torch.equal(held, first_fit) and torch.equal(unread.medium_field.surface_veil, torch.ones(3))
+    reading = [step for step in range(0, 800) if TrainingPhases(config, step).reads_surface_veil]
+    assert reading == ([] if optical_depth is None else list(range(350, 500)))
+    assert not TrainingPhases(config, None).reads_surface_veil
