@@ -45,11 +45,13 @@ RATIO_BINS = 200
 RATIO_TOP = 2.0
 
 
-def deep_bins(attenuation: float, min_optical_depth: float) -> Float[Tensor, "R"]:
-    """The range bins whose nearest range (scene units) times ``attenuation`` (per scene unit) is at least ``min_optical_depth``."""
+def deep_bins(attenuation: float, min_optical_depth: float, max_range: Optional[float] = None) -> Float[Tensor, "R"]:
+    """The range bins whose nearest range (scene units) times ``attenuation`` (per scene unit) is at least
+    ``min_optical_depth`` and, with ``max_range`` (scene units), whose farthest range is at most that."""
     low, high = LOG_RANGE_SPAN
-    nearest = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS, dtype=torch.float64) / RANGE_BINS)
-    return attenuation * nearest >= min_optical_depth
+    edges = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS + 1, dtype=torch.float64) / RANGE_BINS)
+    deep = attenuation * edges[:-1] >= min_optical_depth
+    return deep if max_range is None else deep & (edges[1:] <= max_range)
 
 
 class SurfaceVeil(torch.nn.Module):
@@ -91,14 +93,17 @@ class SurfaceVeil(torch.nn.Module):
         """How many surface rays were counted."""
         return int(self.counts[:, 0, :].sum())
 
-    def ratio(self, attenuation: Float[Tensor, "3"], min_optical_depth: float) -> Float[Tensor, "3"]:
+    def ratio(
+        self, attenuation: Float[Tensor, "3"], min_optical_depth: float, max_range: Optional[float] = None
+    ) -> Float[Tensor, "3"]:
         """``r`` per channel (module docstring): the median colour / veil over the bins whose nearest range
-        times ``attenuation`` (per scene unit) is at least ``min_optical_depth``, at most 1; 1 where under
-        :data:`MIN_SURFACE_SHARE` of the surface rays are in those bins."""
+        times ``attenuation`` (per scene unit) is at least ``min_optical_depth`` (and that end within
+        ``max_range``, scene units), at most 1; 1 where under :data:`MIN_SURFACE_SHARE` of the surface rays
+        are in those bins."""
         total = float(self.counts[:, 0, :].sum())
         out = torch.ones(3, dtype=torch.float64)
         for c in range(3):
-            deep = deep_bins(float(attenuation[c]), min_optical_depth)
+            deep = deep_bins(float(attenuation[c]), min_optical_depth, max_range)
             histogram = self.counts[deep, c, :].sum(dim=0)
             count = float(histogram.sum())
             if total <= 0 or count < MIN_SURFACE_SHARE * total:
@@ -107,13 +112,17 @@ class SurfaceVeil(torch.nn.Module):
             out[c] = min(1.0, (median_bin + 0.5) * RATIO_TOP / RATIO_BINS)
         return out
 
-    def deep_share(self, attenuation: Float[Tensor, "3"], min_optical_depth: float) -> Float[Tensor, "3"]:
+    def deep_share(
+        self, attenuation: Float[Tensor, "3"], min_optical_depth: float, max_range: Optional[float] = None
+    ) -> Float[Tensor, "3"]:
         """The share of the surface rays, per channel, that :meth:`ratio` reads (0 where none were counted)."""
         per_bin = self.counts[:, 0, :].sum(dim=-1)
         total = float(per_bin.sum())
         if total <= 0:
             return torch.zeros(3, dtype=torch.float64)
-        return torch.stack([per_bin[deep_bins(float(attenuation[c]), min_optical_depth)].sum() / total for c in range(3)])
+        return torch.stack(
+            [per_bin[deep_bins(float(attenuation[c]), min_optical_depth, max_range)].sum() / total for c in range(3)]
+        )
 
     def get_extra_state(self) -> Float[Tensor, "N"]:
         return self.counts.reshape(-1).clone()
@@ -155,12 +164,14 @@ def read_surface_veil(model: Any, attenuation: Float[Tensor, "3"], step: int) ->
         return None
     reader = model.surface_veil_reader.pooled(model.device)
     per_scene_unit = attenuation.double().cpu() / model.world_scale
-    share = reader.ratio(per_scene_unit, min_optical_depth)
-    deep = reader.deep_share(per_scene_unit, min_optical_depth)
+    far = None if getattr(model, "far_range", None) is None else float(model.far_range) * model.world_scale
+    share = reader.ratio(per_scene_unit, min_optical_depth, far)
+    deep = reader.deep_share(per_scene_unit, min_optical_depth, far)
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
+    within = "" if far is None else f" within the SfM far bound ({model.far_range:.3g} world units)"
     CONSOLE.print(
         f"[bold]seathru step {step}: the veil in front of the surfaces is {show(share)} of the open water's[/] "
-        f"(median over the {show(deep)} of {reader.surface_rays} surface rays at optical depth >= {min_optical_depth:g}; "
-        "1 where under 1% are)"
+        f"(median over the {show(deep)} of {reader.surface_rays} surface rays at optical depth >= {min_optical_depth:g}"
+        f"{within}; 1 where under 1% are)"
     )
     return share if bool((share < 1).any()) else None

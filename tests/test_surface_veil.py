@@ -10,7 +10,15 @@ import torch
 from seathru_nerfstudio.medium_field import SceneMedium
 from seathru_nerfstudio.model_config import SeathruModelConfig
 from seathru_nerfstudio.phases import TrainingPhases
-from seathru_nerfstudio.surface_veil import MIN_SURFACE_SHARE, RATIO_BINS, RATIO_TOP, SurfaceVeil
+from seathru_nerfstudio.surface_veil import (
+    LOG_RANGE_SPAN,
+    MIN_SURFACE_SHARE,
+    RANGE_BINS,
+    RATIO_BINS,
+    RATIO_TOP,
+    SurfaceVeil,
+    deep_bins,
+)
 
 VEIL = torch.tensor([0.05, 0.22, 0.44])
 ATTENUATION = torch.tensor([0.3, 0.17, 0.12])  # per scene unit
@@ -97,3 +105,24 @@ def test_surface_rays_are_read_in_the_second_half_before_the_fit(optical_depth):
     reading = [step for step in range(0, 800) if TrainingPhases(config, step).reads_surface_veil]
     assert reading == ([] if optical_depth is None else list(range(350, 500)))
     assert not TrainingPhases(config, None).reads_surface_veil
+
+
+def test_only_surfaces_within_the_far_bound_are_read():
+    """Rays placed past the SfM far bound (where the object field walls open water and far surfaces alike) do
+    not count: with a bound, a channel whose deep range lies beyond it reads nothing, and one whose deep range
+    starts within it reads only the rays up to it."""
+    reader = SurfaceVeil()
+    near = torch.exp(torch.linspace(math.log(0.5), math.log(18.0), 20000))  # within a far bound of 20
+    wall = torch.full((4000,), 40.0)  # a wall past it: deep in every channel, showing 0.6 of the veil
+    reader.add(*surface_rays(torch.tensor([0.8, 0.8, 0.8]), near))
+    reader.add((VEIL * 0.6).expand(4000, 3), VEIL.expand(4000, 3), wall[:, None], torch.ones(4000, 1))
+    unbounded = reader.ratio(ATTENUATION, 3.0)
+    bounded = reader.ratio(ATTENUATION, 3.0, max_range=20.0)
+    assert float(unbounded[2]) < 0.62  # blue is deep only on the wall (3 / 0.12 = 25 units)
+    assert float(bounded[2]) == 1.0 and float(reader.deep_share(ATTENUATION, 3.0, max_range=20.0)[2]) == 0.0
+    assert abs(float(bounded[0]) - 0.8) <= 0.3 * math.exp(-3.0) / float(VEIL[0]) + 2 * RATIO_TOP / RATIO_BINS
+    assert float(unbounded[0]) < float(bounded[0]) - 0.05  # the wall pulls the unbounded reading down
+    bins = deep_bins(0.3, 3.0, 20.0)  # every bin read lies in [10, 20] units
+    low, high = LOG_RANGE_SPAN
+    edges = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS + 1, dtype=torch.float64) / RANGE_BINS)
+    assert bool(bins.any()) and float(edges[:-1][bins].min()) >= 10.0 and float(edges[1:][bins].max()) <= 20.0
