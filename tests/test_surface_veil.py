@@ -126,3 +126,26 @@ def test_only_surfaces_within_the_far_bound_are_read():
     low, high = LOG_RANGE_SPAN
     edges = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS + 1, dtype=torch.float64) / RANGE_BINS)
     assert bool(bins.any()) and float(edges[:-1][bins].min()) >= 10.0 and float(edges[1:][bins].max()) <= 20.0
+
+
+def test_the_model_reads_within_its_sfm_far_bound_in_scene_units():
+    """``read_surface_veil`` takes the model's far bound (world units, ``far_plane`` / scale) to scene units, as the
+    rays' ranges are: with a scale of 2 and a far plane of 20 scene units, rays at 30 units are past it."""
+    from seathru_nerfstudio.data.nerfstudio_data import SCALE_KEY
+    from seathru_nerfstudio.surface_veil import read_surface_veil
+
+    from tiny_training import tiny_model
+
+    ranges = {"within": torch.full((500,), 15.0), "past": torch.full((2000,), 30.0)}
+    shares = {"within": 0.8, "past": 0.6}
+    for bounded in (True, False):
+        metadata = {SCALE_KEY: 2.0, **({"far_plane": 20.0} if bounded else {})}
+        model = tiny_model(metadata=metadata)
+        assert (model.far_range == 10.0) if bounded else model.far_range is None
+        for name, z in ranges.items():
+            colour = (VEIL * shares[name]).expand(z.shape[0], 3)
+            model.surface_veil_reader.add(colour, VEIL.expand(z.shape[0], 3), z[:, None], torch.ones(z.shape[0], 1))
+        per_world_unit = torch.full((3,), 1.0)  # 0.5 per scene unit: 3 attenuation lengths at 6 units
+        read = read_surface_veil(model, per_world_unit, step=499)
+        expected = shares["within"] if bounded else shares["past"]
+        torch.testing.assert_close(read, torch.full((3,), expected + 0.005, dtype=torch.float64), atol=0.006, rtol=0)
