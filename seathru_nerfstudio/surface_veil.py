@@ -14,11 +14,13 @@ So the scene medium renders two veils (:func:`~seathru_nerfstudio.rendering.rend
 whose excess ``(1 − r) B∞`` reaches a ray only past all matter. ``r`` is read here, from the training rays
 that end on a surface (accumulation >= :data:`SURFACE_ACCUMULATION`) in the steps before the medium fit: the
 median of their colour over the veil they are rendered with, among those whose optical depth under the
-fitted attenuation is at least ``min_optical_depth`` and whose rendered range lies within the SfM far bound.
-Past that bound no SfM depth places a surface and the object field builds a wall of whatever it meets: on
-coastal layout 3 rendered again, seed 42, the rays it placed 22-27 m away (1.3-1.5 times the bound) were open
-water and surfaces truly 13 m away, whose blue still carried a fifth of their own light, and blue read 0.775
-where its best fit is 0.86 (``β_B`` +49%; docs/history.md, 2026-12-07 (293d70d)). Rays are binned by range and by that ratio, so the
+fitted attenuation is at least ``min_optical_depth``. A channel is read only where that depth lies within the
+SfM far bound, so that the SfM shows surfaces that deep exist: past the bound the object field builds a wall of
+whatever it meets. On coastal layout 3 rendered again, seed 42, blue's depth of 3 attenuation lengths (21.8 m)
+lay past the bound (17.3 m), and the rays placed there were open water and surfaces truly 13 m away, whose blue
+still carried a fifth of their own light: blue read 0.775 where its best fit is 0.86 (``β_B`` +49%). Reading
+only within the bound lost the far surfaces that a channel whose depth lies within it reads well (coastal 7,
+seed 42: red's deep rays 5.1% of the surface rays, 0.46% within the bound; docs/history.md, 2026-12-07). Rays are binned by range and by that ratio, so the
 attenuation can be chosen after they are counted. Where fewer than :data:`MIN_SURFACE_SHARE` of the surface
 rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's).
 On scenes drawn with the formation model a deep surface's colour is at or above its veil where ``β_B >= β_D``; where
@@ -51,11 +53,13 @@ RATIO_TOP = 2.0
 
 def deep_bins(attenuation: float, min_optical_depth: float, max_range: Optional[float] = None) -> Float[Tensor, "R"]:
     """The range bins whose nearest range (scene units) times ``attenuation`` (per scene unit) is at least
-    ``min_optical_depth`` and, with ``max_range`` (scene units), whose farthest range is at most that."""
+    ``min_optical_depth``; none where that optical depth is first reached past ``max_range`` (scene units)."""
     low, high = LOG_RANGE_SPAN
-    edges = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS + 1, dtype=torch.float64) / RANGE_BINS)
-    deep = attenuation * edges[:-1] >= min_optical_depth
-    return deep if max_range is None else deep & (edges[1:] <= max_range)
+    nearest = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS, dtype=torch.float64) / RANGE_BINS)
+    deep = attenuation * nearest >= min_optical_depth
+    if max_range is not None and not attenuation * max_range >= min_optical_depth:
+        return torch.zeros_like(deep)
+    return deep
 
 
 class SurfaceVeil(torch.nn.Module):
@@ -101,9 +105,9 @@ class SurfaceVeil(torch.nn.Module):
         self, attenuation: Float[Tensor, "3"], min_optical_depth: float, max_range: Optional[float] = None
     ) -> Float[Tensor, "3"]:
         """``r`` per channel (module docstring): the median colour / veil over the bins whose nearest range
-        times ``attenuation`` (per scene unit) is at least ``min_optical_depth`` (and that end within
-        ``max_range``, scene units), at most 1; 1 where under :data:`MIN_SURFACE_SHARE` of the surface rays
-        are in those bins."""
+        times ``attenuation`` (per scene unit) is at least ``min_optical_depth``, at most 1; 1 where under
+        :data:`MIN_SURFACE_SHARE` of the surface rays are in those bins, or where that optical depth is first
+        reached past ``max_range`` (scene units: the SfM far bound)."""
         total = float(self.counts[:, 0, :].sum())
         out = torch.ones(3, dtype=torch.float64)
         for c in range(3):
@@ -172,7 +176,7 @@ def read_surface_veil(model: Any, attenuation: Float[Tensor, "3"], step: int) ->
     share = reader.ratio(per_scene_unit, min_optical_depth, far)
     deep = reader.deep_share(per_scene_unit, min_optical_depth, far)
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
-    within = "" if far is None else f" within the SfM far bound ({model.far_range:.3g} world units)"
+    within = "" if far is None else f", a channel only where that depth is within the SfM far bound ({model.far_range:.3g} world units)"
     CONSOLE.print(
         f"[bold]seathru step {step}: the veil in front of the surfaces is {show(share)} of the open water's[/] "
         f"(median over the {show(deep)} of {reader.surface_rays} surface rays at optical depth >= {min_optical_depth:g}"
