@@ -20,9 +20,9 @@ whatever it meets. On coastal layout 3 rendered again, seed 42, blue's depth of 
 lay past the bound (17.3 m), and the rays placed there were open water and surfaces truly 13 m away, whose blue
 still carried a fifth of their own light: blue read 0.775 where its best fit is 0.86 (``β_B`` +49%). Reading
 only within the bound lost the far surfaces that a channel whose depth lies within it reads well (coastal 7,
-seed 42: red's deep rays 5.1% of the surface rays, 0.46% within the bound; docs/history.md, 2026-12-07). Rays are binned by range and by that ratio, so the
-attenuation can be chosen after they are counted. Where fewer than :data:`MIN_SURFACE_SHARE` of the surface
-rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's).
+seed 42: red's deep rays 5.1% of the surface rays, 0.46% within the bound; docs/history.md, 2026-12-07).
+Rays are binned by range and by that ratio, so the attenuation can be chosen after they are counted. Where
+fewer than :data:`MIN_SURFACE_SHARE` of the surface rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's).
 On scenes drawn with the formation model a deep surface's colour is at or above its veil where ``β_B >= β_D``; where
 ``β_B < β_D`` it can fall short by up to ``e^{-β_B z}`` (water demo, true range: green's deep pixels 0.93 of the veil, but
 0.2% of the pixels, under the floor), so there ``r`` stays 1 only while such surfaces are few.
@@ -176,7 +176,9 @@ def read_surface_veil(model: Any, attenuation: Float[Tensor, "3"], step: int) ->
     share = reader.ratio(per_scene_unit, min_optical_depth, far)
     deep = reader.deep_share(per_scene_unit, min_optical_depth, far)
     show = lambda values: ", ".join(f"{float(v):.3g}" for v in values)  # noqa: E731
-    within = "" if far is None else f", a channel only where that depth is within the SfM far bound ({model.far_range:.3g} world units)"
+    within = "" if far is None else (
+        f", a channel only where that depth is within the SfM far bound ({model.far_range:.3g} world units)"
+    )
     CONSOLE.print(
         f"[bold]seathru step {step}: the veil in front of the surfaces is {show(share)} of the open water's[/] "
         f"(median over the {show(deep)} of {reader.surface_rays} surface rays at optical depth >= {min_optical_depth:g}"
