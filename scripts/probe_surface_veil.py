@@ -3,10 +3,10 @@ saved with ``seathru-bench run --save-model`` or ``ns-train``, and the scene's g
 
 Renders the run's held-out views. Per channel, the rays the reader would count at the run's end
 (:mod:`seathru_nerfstudio.surface_veil`: object opacity at least 0.95, rendered range times the run's
-attenuation at least 3; every channel, though the reader skips one whose depth of 3 attenuation lengths lies past the
-SfM far bound, which is printed with where the deep rays sit against it) are split by the truth: open water (no
-surface on the ray) and surfaces. Printed per channel: how many of each, their median colour over the veil the run renders them with, the surfaces' median
-true range, and the same median over the surfaces that are truly that deep (true range and ``β_D``), which is
+attenuation at least 3; every channel, though the reader skips one whose depth of 3 attenuation lengths lies
+past the SfM far bound, which is printed with where the deep rays sit against it) are split by the truth: open
+water (no surface on the ray) and surfaces. Printed per channel: how many of each, their median colour over the
+veil the run renders them with, the surfaces' median true range, and the same median over the surfaces that are truly that deep (true range and ``β_D``), which is
 what the reader should find.
 
     .venv/bin/python scripts/probe_surface_veil.py RUN/config.yml outputs/pathtraced/coastal_s3

@@ -22,7 +22,8 @@ still carried a fifth of their own light: blue read 0.775 where its best fit is 
 only within the bound lost the far surfaces that a channel whose depth lies within it reads well (coastal 7,
 seed 42: red's deep rays 5.1% of the surface rays, 0.46% within the bound; docs/history.md, 2026-12-07).
 Rays are binned by range and by that ratio, so the attenuation can be chosen after they are counted. Where
-fewer than :data:`MIN_SURFACE_SHARE` of the surface rays are that deep, or the median is at or above 1, the channel keeps ``r = 1`` (one veil, as SeaThru's).
+fewer than :data:`MIN_SURFACE_SHARE` of the surface rays are that deep, or the median is at or above 1, the
+channel keeps ``r = 1`` (one veil, as SeaThru's).
 On scenes drawn with the formation model a deep surface's colour is at or above its veil where ``β_B >= β_D``; where
 ``β_B < β_D`` it can fall short by up to ``e^{-β_B z}`` (water demo, true range: green's deep pixels 0.93 of the veil, but
 0.2% of the pixels, under the floor), so there ``r`` stays 1 only while such surfaces are few.
@@ -54,12 +55,11 @@ RATIO_TOP = 2.0
 def deep_bins(attenuation: float, min_optical_depth: float, max_range: Optional[float] = None) -> Float[Tensor, "R"]:
     """The range bins whose nearest range (scene units) times ``attenuation`` (per scene unit) is at least
     ``min_optical_depth``; none where that optical depth is first reached past ``max_range`` (scene units)."""
+    if max_range is not None and not attenuation * max_range >= min_optical_depth:  # NaN reads nothing too
+        return torch.zeros(RANGE_BINS, dtype=torch.bool)
     low, high = LOG_RANGE_SPAN
     nearest = torch.pow(10.0, low + (high - low) * torch.arange(RANGE_BINS, dtype=torch.float64) / RANGE_BINS)
-    deep = attenuation * nearest >= min_optical_depth
-    if max_range is not None and not attenuation * max_range >= min_optical_depth:
-        return torch.zeros_like(deep)
-    return deep
+    return attenuation * nearest >= min_optical_depth
 
 
 class SurfaceVeil(torch.nn.Module):
