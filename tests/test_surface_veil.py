@@ -54,10 +54,16 @@ def test_ratio_is_the_median_colour_over_veil_of_the_deep_surfaces():
 
 def test_too_few_deep_surfaces_keep_one_veil_and_open_or_bad_rays_are_not_counted():
     reader = SurfaceVeil()
-    ranges = torch.cat([torch.full((1000,), 1.0), torch.full((5,), 40.0)])  # 0.5% deep
+    shallow = 20_000
+    deep = int(MIN_SURFACE_SHARE * shallow / 2)  # half the floor's share
+    ranges = torch.cat([torch.full((shallow,), 1.0), torch.full((deep,), 40.0)])
     colour, veil, z, acc = surface_rays(torch.tensor([0.5, 0.5, 0.5]), ranges)
     reader.add(colour, veil, z, acc)
     torch.testing.assert_close(reader.ratio(ATTENUATION, 3.0), torch.ones(3, dtype=torch.float64))
+    enough = SurfaceVeil()  # twice the floor's share is read: 40 units is 4.8 or more attenuation lengths
+    enough.add(*surface_rays(torch.tensor([0.5, 0.5, 0.5]), torch.cat([ranges[:shallow], torch.full((4 * deep,), 40.0)])))
+    own_light = 0.3 * math.exp(-float(ATTENUATION.min()) * 40.0) / float(VEIL.min())
+    assert ((enough.ratio(ATTENUATION, 3.0) - 0.5).abs() <= own_light + RATIO_TOP / RATIO_BINS).all()
     before = reader.counts.clone()
     bad = torch.tensor([[float("nan"), 0.1, 0.1], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1], [0.1, 0.1, 0.1]])
     reader.add(bad, VEIL.expand(4, 3), torch.tensor([[40.0], [40.0], [0.0], [40.0]]), torch.tensor([[1.0], [0.5], [1.0], [1.0]]))
