@@ -43,8 +43,8 @@ from nerfstudio.utils.rich_utils import CONSOLE
 SURFACE_ACCUMULATION = 0.95
 """A training ray counts as ending on a surface where the object field's accumulation reaches this."""
 MIN_SURFACE_SHARE = 0.001
-"""A channel's ratio is read only where at least this share of the surface rays is deep enough (0.1%: 60–95 of
-the 60,000–95,000 rays a 1500-step lite run counts; the water demo's unsaturated green, 0.03%, stays under it)."""
+"""A channel's ratio is read only where at least this share of the surface rays is deep enough (0.1%: 60–120 of
+the 60,000–120,000 surface rays a 1500-step lite run counts; the water demo's unsaturated green, 0.03%, stays under it)."""
 RANGE_BINS = 120
 """Bins of ``log10(range)`` over :data:`LOG_RANGE_SPAN` (12% wide each)."""
 LOG_RANGE_SPAN = (-3.0, 3.0)
