@@ -18,11 +18,26 @@ def scene(tmp_path_factory) -> Path:
     return make_scene(tmp_path_factory.mktemp("workers"))
 
 
+SPAWNED_ENTRIES = ("spawn import spawn_main", "resource_tracker import main")
+"""What the command line of a process spawned by ``multiprocess`` (nerfstudio's) or
+``multiprocessing`` holds: a worker, or the resource tracker that the first queue starts."""
+
+
 def _children() -> set:
-    """This process's direct children: a worker or a multiprocessing helper the data manager starts is
-    one, while the processes of other tests' fork server (``forked_cli``) are its grandchildren and
-    may come and go at any moment."""
-    return {child.pid for child in psutil.Process().children()}
+    """This process's direct children that were spawned as multiprocessing's are (nerfstudio's data
+    manager sets the ``spawn`` start method). The CLIs that the suite's background threads start
+    (``conftest``: the tiny run, the bench runs, their jobs) are direct children too and may start
+    at any moment, so they are told apart by their command line; the processes of other tests'
+    fork server (``forked_cli``) are grandchildren."""
+    pids = set()
+    for child in psutil.Process().children():
+        try:
+            command = " ".join(child.cmdline())
+        except psutil.Error:  # ended, or a zombie, since it was listed
+            continue
+        if any(entry in command for entry in SPAWNED_ENTRIES):
+            pids.add(child.pid)
+    return pids
 
 
 def _stop(manager) -> None:
