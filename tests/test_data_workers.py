@@ -18,17 +18,24 @@ def scene(tmp_path_factory) -> Path:
     return make_scene(tmp_path_factory.mktemp("workers"))
 
 
-SPAWNED_ENTRIES = ("spawn import spawn_main", "resource_tracker import main")
-"""What the command line of a process spawned by ``multiprocess`` (nerfstudio's) or
-``multiprocessing`` holds: a worker, or the resource tracker that the first queue starts."""
+SPAWNED_ENTRIES = ("multiprocess.spawn import spawn_main", "multiprocess.resource_tracker import main")
+"""What the command line of a process that ``multiprocess`` spawns holds (pathos's fork of
+``multiprocessing``, which nerfstudio's data manager and ours use): a worker, or the resource
+tracker that the first queue starts. The standard library's processes name ``multiprocessing.…``
+instead, which these do not match."""
 
 
 def _children() -> set:
-    """This process's direct children that were spawned as multiprocessing's are (nerfstudio's data
-    manager sets the ``spawn`` start method). The CLIs that the suite's background threads start
-    (``conftest``: the tiny run, the bench runs, their jobs) are direct children too and may start
-    at any moment, so they are told apart by their command line; the processes of other tests'
-    fork server (``forked_cli``) are grandchildren."""
+    """This process's direct children: a worker the data manager starts is one."""
+    return {child.pid for child in psutil.Process().children()}
+
+
+def _spawned_children() -> set:
+    """This process's direct children that ``multiprocess`` spawned (nerfstudio's data manager sets
+    the ``spawn`` start method). The suite's background threads (``conftest``: the tiny run, the bench
+    runs, their jobs) start processes at any moment: CLIs, and the standard library's fork server of
+    ``forked_cli`` with its resource tracker, which are direct children too. They are told apart by
+    their command line; the CLIs that fork server starts are grandchildren."""
     pids = set()
     for child in psutil.Process().children():
         try:
@@ -48,11 +55,11 @@ def _stop(manager) -> None:
 
 def test_a_data_manager_built_to_evaluate_starts_its_worker_at_the_first_training_batch(scene, tmp_path) -> None:
     config = tiny_config(scene, tmp_path / "out", iterations=3).pipeline.datamanager
-    before = _children()
+    before = _spawned_children()
     manager = config.setup(device="cpu", test_mode="test")
     try:
         assert manager.data_procs == []
-        assert _children() - before == set()  # nothing started, not even multiprocessing's helpers
+        assert _spawned_children() - before == set()  # nothing started, not even multiprocessing's helpers
         bundle, batch = manager.next_train(0)  # asked for anyway: it comes, from a worker
         (worker,) = manager.data_procs
         assert worker.is_alive() and worker.pid in _children()
