@@ -267,7 +267,7 @@ class AutoMediumChoice:
             )
             return False
         model.medium_model_code.fill_(MEDIUM_MODELS.index("none"))
-        model.contract_for_medium_model()
+        model.fit_object_field_to_medium_model()
         self.initial_object = None
         CONSOLE.print(
             f"[bold]seathru: medium model auto -> none[/] (the medium explains {explained:.3f} < "
@@ -291,7 +291,7 @@ class AutoMediumChoice:
         if chosen == "none" and self.initial_object is not None:
             model.field.load_state_dict(self.initial_object["field"])
             model.proposal_networks.load_state_dict(self.initial_object["proposal_networks"])
-            model.contract_for_medium_model()
+            model.fit_object_field_to_medium_model()
             for group in ("fields", "proposal_networks"):
                 if optimizers is not None and group in optimizers.optimizers:
                     optimizers.optimizers[group].state.clear()  # Adam restarts with the parameters

@@ -96,12 +96,11 @@ class SeathruModel(NerfactoModel):
         self.register_buffer("backscatter_veil_sensitivity", torch.zeros(3, dtype=torch.float64))
         """``d ln beta_B / d ln B_inf`` at the fit (:func:`~seathru_nerfstudio.medium_fit.veil_sensitivity`)."""
         self.auto_choice = AutoMediumChoice(self) if self.config.medium_model == "auto" else None
-        if not self.config.object_view_dependent:
-            self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
+        self.field.direction_encoding = FixedDirectionEncoding(self.field.direction_encoding)
         self.contraction_radius = 1.0
         """Scene units at which the hash grids' contraction starts (1: nerfacto's)."""
-        self.contract_for_medium_model()
-        self.register_load_state_dict_post_hook(lambda model, _keys: model.contract_for_medium_model())
+        self.fit_object_field_to_medium_model()
+        self.register_load_state_dict_post_hook(lambda model, _keys: model.fit_object_field_to_medium_model())
         self.far_range: Optional[float] = (
             float(metadata["far_plane"]) / self.world_scale if "far_plane" in metadata else None
         )
@@ -113,12 +112,13 @@ class SeathruModel(NerfactoModel):
         self.medium_controls_enabled = True
         """Renders outside training take the viewer's water controls; SeathruPipeline turns this off to evaluate."""
 
-    def contract_for_medium_model(self) -> None:
-        """The object field's contraction for the medium model in use (again whenever it changes, and after a
-        checkpoint loads): with a medium, from the scene's extent (:func:`~seathru_nerfstudio.object_field.
-        scene_contraction_radius`), so that far surfaces seen through water keep their resolution; in clear air
-        (``none``), nerfacto's, so that its hash tables hold the near surfaces that fill a clear view (path-traced
-        clear air: 34.06 / 34.47 dB against nerfacto's 34.12 / 34.05, 30.95 at the scene's extent; docs/history.md)."""
+    def fit_object_field_to_medium_model(self) -> None:
+        """The object field for the medium model in use, set again whenever it changes and after a checkpoint
+        loads (:mod:`~seathru_nerfstudio.object_field`): with a medium, Lambertian colour and the contraction at the
+        scene's extent (:func:`~seathru_nerfstudio.object_field.scene_contraction_radius`); in clear air (``none``),
+        nerfacto's view-dependent colour and contraction (``object_view_dependent`` set: that colour always or never)."""
+        view_dependent = self.config.object_view_dependent
+        self.field.direction_encoding.fixed = not (self.medium_model == "none" if view_dependent is None else view_dependent)
         metadata = self.kwargs.get("metadata") or {}
         radius = 1.0 if self.medium_model == "none" else scene_contraction_radius(metadata)
         if radius != self.contraction_radius:

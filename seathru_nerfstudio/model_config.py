@@ -82,8 +82,8 @@ class SeathruModelConfig(NerfactoModelConfig):
     """Spherical-harmonic levels of the medium MLP's direction encoding."""
     medium_init_optical_depth: float = 3.0
     """Start the densities so that the mean SfM range is this many attenuation lengths away (0: ``research.medium_init_density``); both are capped by the SfM observations when the object field enters (``medium_start``)."""
-    object_view_dependent: bool = False
-    """View-dependent object colour (nerfacto); off: Lambertian, as the official code."""
+    object_view_dependent: Optional[bool] = None
+    """View-dependent object colour (nerfacto); False: Lambertian, as the official code; None: Lambertian in a medium, view-dependent in clear air."""
     depth_loss_mult: float = 0.1
     """Weight of the DS-NeRF loss on the dataset's sparse SfM depths (0: off); through a medium the images pin the range weakly."""
     clear_air_depth_loss_mult: float = 3e-3

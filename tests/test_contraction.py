@@ -134,7 +134,7 @@ def test_clear_air_keeps_nerfactos_contraction_also_after_auto_chose_it_and_in_a
     chosen = tiny_model(metadata={EXTENT_KEY: 12.0}, medium_model="auto")
     assert chosen.contraction_radius == 12.0
     chosen.medium_model_code.fill_(MEDIUM_MODELS.index("none"))
-    chosen.contract_for_medium_model()
+    chosen.fit_object_field_to_medium_model()
     assert chosen.contraction_radius == 1.0
     loaded = tiny_model(metadata={EXTENT_KEY: 12.0}, medium_model="auto")
     assert loaded.contraction_radius == 12.0

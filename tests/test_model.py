@@ -17,6 +17,7 @@ from nerfstudio.field_components.field_heads import FieldHeadNames
 
 from seathru_nerfstudio import metrics
 from seathru_nerfstudio.losses import rawnerf_loss
+from seathru_nerfstudio.medium_field import MEDIUM_MODELS
 from seathru_nerfstudio.model import SeathruModel, SeathruModelConfig
 
 from tiny_training import rays, seeded_tiny_model, spy_calls, tiny_model
@@ -209,30 +210,52 @@ def test_the_step_callback_sets_the_training_step():
     assert model.train_step == 7
 
 
+def object_colour_by_direction(model) -> torch.Tensor:
+    """The object field's colour at two fixed points seen along three directions, ``(3, 2, 3)``."""
+    model.eval()
+    positions = torch.tensor([[0.1, 0.2, -0.3], [0.0, -0.1, 0.2]])
+    per_direction = []
+    for direction in ([0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.8, 0.6]):
+        d = torch.tensor(direction).expand(2, 3)
+        bundle = RayBundle(
+            origins=positions - 0.5 * d, directions=d, pixel_area=torch.full((2, 1), 1e-4),
+            camera_indices=torch.zeros(2, 1, dtype=torch.long), nears=torch.full((2, 1), 0.5),
+            fars=torch.full((2, 1), 0.5001),
+        )
+        samples = bundle.get_ray_samples(bin_starts=torch.full((2, 1, 1), 0.5), bin_ends=torch.full((2, 1, 1), 0.5001))
+        with torch.no_grad():
+            per_direction.append(model.field(samples)[FieldHeadNames.RGB])
+    return torch.stack(per_direction)
+
+
+def depends_on_direction(colours: torch.Tensor) -> bool:
+    """Whether the colours of :func:`object_colour_by_direction` change with the direction (else they are equal)."""
+    if (colours - colours[:1]).abs().max() > 1e-4:
+        return True
+    torch.testing.assert_close(colours, colours[:1].expand_as(colours))
+    return False
+
+
 def test_lambertian_object_colour_does_not_depend_on_the_view_direction():
     torch.manual_seed(0)
-    lambertian = tiny_model(object_view_dependent=False)
+    lambertian = tiny_model(object_view_dependent=False, medium_model="none")
     torch.manual_seed(0)
-    glossy = tiny_model(object_view_dependent=True)
-    for model in (lambertian, glossy):
-        model.eval()
-    positions = torch.tensor([[0.1, 0.2, -0.3], [0.0, -0.1, 0.2]])
-    colours = {}
-    for name, model in (("lambertian", lambertian), ("glossy", glossy)):
-        per_direction = []
-        for direction in ([0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, -0.8, 0.6]):
-            d = torch.tensor(direction).expand(2, 3)
-            bundle = RayBundle(
-                origins=positions - 0.5 * d, directions=d, pixel_area=torch.full((2, 1), 1e-4),
-                camera_indices=torch.zeros(2, 1, dtype=torch.long), nears=torch.full((2, 1), 0.5),
-                fars=torch.full((2, 1), 0.5001),
-            )
-            samples = bundle.get_ray_samples(bin_starts=torch.full((2, 1, 1), 0.5), bin_ends=torch.full((2, 1, 1), 0.5001))
-            with torch.no_grad():
-                per_direction.append(model.field(samples)[FieldHeadNames.RGB])
-        colours[name] = torch.stack(per_direction)
-    torch.testing.assert_close(colours["lambertian"], colours["lambertian"][:1].expand_as(colours["lambertian"]))
-    assert (colours["glossy"] - colours["glossy"][:1]).abs().max() > 1e-4  # the switch is what makes the difference
+    glossy = tiny_model(object_view_dependent=True, medium_model="seathru")
+    assert not depends_on_direction(object_colour_by_direction(lambertian))
+    assert depends_on_direction(object_colour_by_direction(glossy))  # the switch is what makes the difference
+
+
+def test_the_object_colour_is_lambertian_in_a_medium_and_view_dependent_in_clear_air():
+    for medium_model in ("seathru", "fog", "auto"):  # auto: seathru until it decides
+        assert not depends_on_direction(object_colour_by_direction(tiny_model(medium_model=medium_model)))
+    assert depends_on_direction(object_colour_by_direction(tiny_model(medium_model="none")))
+    chosen = tiny_model(medium_model="auto")  # as auto's decision sets it, and as a checkpoint of it loads
+    chosen.medium_model_code.fill_(MEDIUM_MODELS.index("none"))
+    chosen.fit_object_field_to_medium_model()
+    assert depends_on_direction(object_colour_by_direction(chosen))
+    loaded = tiny_model(medium_model="auto")
+    loaded.load_state_dict(chosen.state_dict())
+    assert depends_on_direction(object_colour_by_direction(loaded))
 
 
 def test_training_metrics_carry_the_decomposition_diagnostics(model):
