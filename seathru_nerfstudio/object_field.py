@@ -5,7 +5,8 @@ scene contraction at the scene, and rays bounded by the SfM near and far bounds.
   a view-dependent look must come from the medium, and multi-view consistency pins the colour. In
   clear air (``none``) no medium could take it, and the colour is nerfacto's, view-dependent
   (path-traced clear layouts 7, 8 and 9, seed 42: 33.96, 35.17 and 34.57 dB in held-out PSNR against
-  33.67, 35.07 and 34.04 Lambertian; matched nerfacto 33.84, 34.42 and 34.91; docs/history.md).
+  33.67, 35.07 and 34.04 Lambertian; matched nerfacto 33.84, 34.42 and 34.91; over six paired runs,
+  seed 7 and the clear demo included, +0.16 dB on average, −0.12 to +0.53; docs/history.md).
 * **Contraction at the scene** (:class:`~seathru_nerfstudio.contraction.ContractionBeyond`): a
   forward-facing rig sees out of nerfstudio's unit cube, so its whole scene would lie in the
   contracted shell; with a medium the contraction starts at the extent the cameras see up to the
