@@ -250,7 +250,7 @@ def test_the_same_images_register_the_same_way_every_time(small_scene, tmp_path)
         poses = {reconstruction.images[i].name: reconstruction.images[i].cam_from_world().matrix() for i in reconstruction.reg_image_ids()}
         runs.append((result.registered, poses, reconstruction.num_points3D()))
         # from each camera start, a complete model is checked against another complete start, and the mapper stops there
-        assert result.cameras[0] == "uncalibrated camera" and len(set(result.cameras)) == 2
+        assert result.cameras[0] == "uncalibrated camera" and len(set(result.cameras)) == 3
         for camera in set(result.cameras):
             counts = [n for n, c in zip(result.attempts, result.cameras) if c == camera]
             assert complete_starts(counts, len(result.registered), RETRY_BELOW_FRACTION) == COMPLETE_STARTS
@@ -357,10 +357,18 @@ def test_a_dataset_with_no_sfm_at_all_says_in_one_line_what_is_lost(tmp_path, ca
 def test_the_camera_starts_at_a_known_or_guessed_focal_length_marked_as_a_prior(small_scene, tmp_path, model, count) -> None:
     """``--focal-length-px``: the shared camera enters the database with that focal length, the principal
     point at the image centre and no distortion, marked as a prior, and is the only camera start; without
-    it, the second start is the same at 1.2 × the long side, the first COLMAP's unmarked guess."""
+    it, the first start is COLMAP's unmarked guess, the second the same at 1.2 × the long side marked as a prior, and
+    the third at 0.5 × the long side (a 90° field of view), marked too."""
     import pycolmap
 
-    from seathru_nerfstudio.data.sfm import GUESSED_FOCAL_PER_LONG_SIDE, SfmError, _extract_and_match, camera_starts, prior_camera_params
+    from seathru_nerfstudio.data.sfm import (
+        GUESSED_FOCAL_PER_LONG_SIDE,
+        WIDE_FOCAL_PER_LONG_SIDE,
+        SfmError,
+        _extract_and_match,
+        camera_starts,
+        prior_camera_params,
+    )
 
     names = sorted(p.name for p in small_scene.glob("*.png"))[:3]
     height, width = cv2.imread(str(small_scene / names[0])).shape[:2]
@@ -378,9 +386,12 @@ def test_the_camera_starts_at_a_known_or_guessed_focal_length_marked_as_a_prior(
     for bad in (0.0, -5.0, float("nan"), float("inf")):
         with pytest.raises(SfmError, match="--focal-length-px"):
             prior_camera_params(model, bad, small_scene / names[0])
-    guess = GUESSED_FOCAL_PER_LONG_SIDE * max(width, height)
+    guess, wide = (ratio * max(width, height) for ratio in (GUESSED_FOCAL_PER_LONG_SIDE, WIDE_FOCAL_PER_LONG_SIDE))
+    assert wide < guess
     assert camera_starts(model, None, small_scene / names[0]) == [
-        ("uncalibrated camera", ""), (f"camera from {guess:.0f} px", prior_camera_params(model, None, small_scene / names[0]))
+        ("uncalibrated camera", ""),
+        (f"camera from {guess:.0f} px", prior_camera_params(model, None, small_scene / names[0])),
+        (f"camera from {wide:.0f} px", prior_camera_params(model, wide, small_scene / names[0])),
     ]
     assert camera_starts(model, 123.5, small_scene / names[0]) == [("camera from 124 px", prior_camera_params(model, 123.5, small_scene / names[0]))]
 
@@ -394,7 +405,7 @@ def test_a_further_camera_start_reuses_the_matches_and_verifies_them_as_a_fresh_
     from seathru_nerfstudio.data.sfm import _extract_and_match, _verify_again, camera_starts
 
     names = sorted(p.name for p in small_scene.glob("*.png"))[:6]
-    (_, unmarked), (_, marked) = camera_starts("SIMPLE_PINHOLE", None, small_scene / names[0])
+    (_, unmarked), (_, marked), _ = camera_starts("SIMPLE_PINHOLE", None, small_scene / names[0])
     _extract_and_match(tmp_path / "first.db", small_scene, names, "SIMPLE_PINHOLE", unmarked, "exhaustive", {}, "SIFT", False)
     _extract_and_match(tmp_path / "fresh.db", small_scene, names, "SIMPLE_PINHOLE", marked, "exhaustive", {}, "SIFT", False)
     _verify_again(tmp_path / "first.db", tmp_path / "reused.db", marked, False)

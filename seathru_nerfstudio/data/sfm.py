@@ -150,10 +150,10 @@ PRIOR_PARAMS = {
 """COLMAP's parameter order per camera model, for a starting focal length ``f`` (pixels), the principal
 point at the image centre and no distortion."""
 GUESSED_FOCAL_PER_LONG_SIDE = 1.2
-"""Without a known focal length the camera is mapped from two starts (:func:`camera_starts`) and the model
-that explains more is kept: COLMAP's own guess of this many times the long side, uncalibrated (fundamental
-matrices, a focal length estimated with each new pose), and the same guess marked as a prior (essential
-matrices; still refined). Neither is right everywhere: on path-traced clear layout 6 the uncalibrated start
+"""Without a known focal length the camera is mapped from three starts (:func:`camera_starts`) and the model
+that explains the most is kept: COLMAP's own guess of this many times the long side, uncalibrated (fundamental
+matrices, a focal length estimated with each new pose), the same guess marked as a prior (essential
+matrices; still refined), and :data:`WIDE_FOCAL_PER_LONG_SIDE` marked. No one start is right everywhere: on path-traced clear layout 6 the uncalibrated start
 ended 36% short and 14° off, the marked one 0.09° off; on clear layout 0 the marked start mirrored the
 camera centres, the uncalibrated one was 0.4° off (docs/data.md, docs/pathtraced.md)."""
 
@@ -175,15 +175,27 @@ def prior_camera_params(camera_model: str, focal_length_px: Optional[float], ima
     return PRIOR_PARAMS[camera_model].format(f=focal, cx=width / 2.0, cy=height / 2.0)
 
 
+WIDE_FOCAL_PER_LONG_SIDE = 0.5
+"""The third start without a known focal length: this many times the long side (a 90° field of view
+across it), marked as a prior. Bundle adjustment refines a focal length only within a narrow basin
+round its start: on path-traced fog layout 9 (true 207.8 px) the mapper ended at 253–256 px from 168,
+240, 288 and 330 px and from COLMAP's own guess, with the cameras 17.5° off, but at 220 px from 120
+px, explaining more observations (3237 against 3147), so the ranking keeps it. Wide lenses are common
+under water, and starting from both ends of the usual fields of view lets that ranking choose."""
+
+
 def camera_starts(camera_model: str, focal_length_px: Optional[float], image: Path) -> list[tuple[str, str]]:
     """The shared camera's starts, each ``(label, camera_params)`` (:func:`prior_camera_params`; ``""``:
     COLMAP's uncalibrated guess): the known focal length alone where one is given, else COLMAP's
-    uncalibrated guess and :data:`GUESSED_FOCAL_PER_LONG_SIDE` times the long side as a prior."""
+    uncalibrated guess, and :data:`GUESSED_FOCAL_PER_LONG_SIDE` and :data:`WIDE_FOCAL_PER_LONG_SIDE`
+    times the long side as priors."""
     params = prior_camera_params(camera_model, focal_length_px, image)
     focal = float(params.split(",")[0])
     if focal_length_px is not None:
         return [(f"camera from {focal:.0f} px", params)]
-    return [("uncalibrated camera", ""), (f"camera from {focal:.0f} px", params)]
+    wide_focal = focal * WIDE_FOCAL_PER_LONG_SIDE / GUESSED_FOCAL_PER_LONG_SIDE
+    wide = prior_camera_params(camera_model, wide_focal, image)
+    return [("uncalibrated camera", ""), (f"camera from {focal:.0f} px", params), (f"camera from {wide_focal:.0f} px", wide)]
 
 
 def mapper_options(attempt: dict[str, float]) -> pycolmap.IncrementalPipelineOptions:

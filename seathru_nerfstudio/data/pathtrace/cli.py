@@ -44,13 +44,14 @@ from seathru_nerfstudio.quiet import silence_upstream_warnings
 
 GENERATOR_VERSION = 2
 """Bumped when the same options would render a different scene (part of the cache key)."""
-REGISTRATION_VERSION = 5
+REGISTRATION_VERSION = 6
 """Bumped when the same renders would register otherwise (part of the cache key, not of the
 renders' key: a cached scene keeps its renders and is registered again, in seconds). 2: the
 mapper's model chosen among two starts by the observations it explains (``data/sfm.py``); 3: pooled
 SIFT descriptors matched again where SIFT registers under 80% of the views; 4: the mapper starts until
 two of its starts hold 80% of the views; 5: without a known focal length the camera is mapped from two starts,
-COLMAP's uncalibrated guess and 1.2 × the long side marked as a prior (``data/sfm.py``, ``camera_starts``)."""
+COLMAP's uncalibrated guess and 1.2 × the long side marked as a prior (``data/sfm.py``, ``camera_starts``); 6: and
+from a third, 0.5 × the long side marked as a prior."""
 DEFAULT_ROOT = Path("outputs/pathtraced")
 SUN_OPTIONS = ("sun_elevation_deg", "sun_azimuth_deg")
 """Options that replace the preset's sun (None: the preset's own)."""
