@@ -150,12 +150,13 @@ PRIOR_PARAMS = {
 """COLMAP's parameter order per camera model, for a starting focal length ``f`` (pixels), the principal
 point at the image centre and no distortion."""
 GUESSED_FOCAL_PER_LONG_SIDE = 1.2
-"""Without a known focal length the camera is mapped from three starts (:func:`camera_starts`) and the model
-that explains the most is kept: COLMAP's own guess of this many times the long side, uncalibrated (fundamental
-matrices, a focal length estimated with each new pose), the same guess marked as a prior (essential
-matrices; still refined), and :data:`WIDE_FOCAL_PER_LONG_SIDE` marked. No one start is right everywhere: on path-traced clear layout 6 the uncalibrated start
-ended 36% short and 14° off, the marked one 0.09° off; on clear layout 0 the marked start mirrored the
-camera centres, the uncalibrated one was 0.4° off (docs/data.md, docs/pathtraced.md)."""
+"""COLMAP's guess of the focal length per long side; without a known one, :func:`camera_starts` maps from it
+uncalibrated (fundamental matrices) and marked as a prior (essential matrices; still refined). Neither is right
+everywhere: on path-traced clear layout 6 the uncalibrated start ended 14° off, the marked one 0.09°; on clear
+layout 0 the marked one mirrored the cameras (docs/data.md)."""
+WIDE_FOCAL_PER_LONG_SIDE = 0.5
+"""The third start (90° across the long side), marked: bundle adjustment refines a focal length only near its
+start, and on path-traced fog layout 9 the others ended 22% long, 17.5° off, this one 7.8° off (docs/data.md)."""
 
 
 def prior_camera_params(camera_model: str, focal_length_px: Optional[float], image: Path) -> str:
@@ -175,17 +176,11 @@ def prior_camera_params(camera_model: str, focal_length_px: Optional[float], ima
     return PRIOR_PARAMS[camera_model].format(f=focal, cx=width / 2.0, cy=height / 2.0)
 
 
-WIDE_FOCAL_PER_LONG_SIDE = 0.5
-"""The third start without a known focal length: this many times the long side (90° across it), marked as a
-prior. Bundle adjustment refines a focal length only near its start: on path-traced fog layout 9 every other
-start ended 22% long, 17.5° off, and this one 6% long, 7.8° off, explaining more (docs/data.md)."""
-
-
 def camera_starts(camera_model: str, focal_length_px: Optional[float], image: Path) -> list[tuple[str, str]]:
     """The shared camera's starts, each ``(label, camera_params)`` (:func:`prior_camera_params`; ``""``:
-    COLMAP's uncalibrated guess): the known focal length alone where one is given, else COLMAP's
-    uncalibrated guess, and :data:`GUESSED_FOCAL_PER_LONG_SIDE` and :data:`WIDE_FOCAL_PER_LONG_SIDE`
-    times the long side as priors."""
+    COLMAP's uncalibrated guess): the known focal length alone where one is given, else the uncalibrated
+    guess and :data:`GUESSED_FOCAL_PER_LONG_SIDE` and :data:`WIDE_FOCAL_PER_LONG_SIDE` × the long side marked;
+    the model that explains the most is kept (:func:`run_sfm`)."""
     params = prior_camera_params(camera_model, focal_length_px, image)
     focal = float(params.split(",")[0])
     if focal_length_px is not None:
